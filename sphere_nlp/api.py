@@ -1,0 +1,247 @@
+"""The Python API: :func:`parameterize` runs the whole pipeline and returns one result object."""
+
+import resource
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import errors
+from .certify import Certificate, certify, spherical_angles
+from .connectivity import validate_mesh
+from .mesh_io import check_mesh_path, load_mesh, write_json, write_mesh, write_npz
+from .nlp import FORMULATIONS
+from .solve import solve_angles
+from .targets import MODES, make_targets
+from .unfold import unfold
+
+
+def peak_rss_mb():
+    """Peak resident memory of this process so far, in MB."""
+    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return kb / 1024 if sys.platform != "darwin" else kb / 2 ** 20
+
+
+@dataclass
+class SphericalParameterization:
+    """Everything a run produced: positions, angles, status, statistics and certificate.
+
+    Attributes
+    ----------
+    vertices : (n, 3) array
+        Positions on the unit sphere, one per input vertex, in input order.
+    faces : (t, 3) int array
+        The triangles (as validated; see ``repairs``).
+    input_vertices : (n, 3) array
+        The input positions.
+    angles : (t, 3) array
+        Solved spherical angles; ``angles[i, j]`` is at vertex ``faces[i, j]``.
+    excess : (t,) array
+        Solved spherical excesses (areas on the unit sphere).
+    target_angles, target_excess : arrays
+        The targets beta and e' of the objective.
+    target : str
+        Target mode (or "custom").
+    formulation : str
+    success : bool
+        True when IPOPT succeeded and the certificate is valid.
+    status : str
+        IPOPT's return status of the last stage.
+    iterations : int
+    objective : float
+    max_constraint_violation : float
+        max |residual| of constraints (6)-(8) at the returned angles and excesses.
+    max_angle_error : float
+        max |spherical angle measured from ``vertices`` - solved angle| (radians).
+    certificate : Certificate
+    stages : list of dict
+        Per-IPOPT-run statistics.
+    timings : dict
+        Seconds per stage: load, build, solve, unfold, certify, total.
+    repairs : list of str
+        Repairs made to the input.
+    unfold_info : dict
+    peak_rss_mb : float
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    input_vertices: np.ndarray
+    angles: np.ndarray
+    excess: np.ndarray
+    target_angles: np.ndarray
+    target_excess: np.ndarray
+    target: str
+    formulation: str
+    success: bool
+    status: str
+    iterations: int
+    objective: float
+    max_constraint_violation: float
+    max_angle_error: float
+    certificate: Certificate
+    stages: list = field(default_factory=list)
+    timings: dict = field(default_factory=dict)
+    repairs: list = field(default_factory=list)
+    unfold_info: dict = field(default_factory=dict)
+    peak_rss_mb: float = 0.0
+
+    def __repr__(self):
+        return ("SphericalParameterization(%d vertices, target=%r, status=%r, certified=%s, %.2f s)"
+                % (len(self.vertices), self.target, self.status, self.certificate.valid,
+                   self.timings.get("total", float("nan"))))
+
+    def write(self, path):
+        """Write the sphere mesh (OFF, OBJ or PLY by extension). Refuses an uncertified result."""
+        if not self.certificate.valid:
+            raise errors.CertificateError("refusing to write an uncertified sphere: "
+                                          + self.certificate.reason, self)
+        write_mesh(path, self.vertices, self.faces)
+
+    def save_solution(self, path):
+        """Write vertices, faces, angles, excess and the targets to an .npz archive."""
+        write_npz(path, vertices=self.vertices, faces=self.faces, angles=self.angles, excess=self.excess,
+                  target_angles=self.target_angles, target_excess=self.target_excess)
+
+    def report(self):
+        """A JSON-ready dict of the run's statistics."""
+        return {
+            "vertices": int(len(self.vertices)),
+            "faces": int(len(self.faces)),
+            "target": self.target,
+            "formulation": self.formulation,
+            "success": bool(self.success),
+            "status": self.status,
+            "iterations": int(self.iterations),
+            "objective": float(self.objective),
+            "max_constraint_violation": float(self.max_constraint_violation),
+            "max_angle_error": float(self.max_angle_error),
+            "certificate": self.certificate.to_dict(),
+            "stages": self.stages,
+            "timings_s": {k: round(float(v), 6) for k, v in self.timings.items()},
+            "peak_rss_mb": round(float(self.peak_rss_mb), 1),
+            "repairs": list(self.repairs),
+            "unfold": {k: (float(v) if isinstance(v, (float, np.floating)) else v)
+                       for k, v in self.unfold_info.items()},
+        }
+
+    def write_report(self, path):
+        """Write :meth:`report` as JSON."""
+        write_json(path, self.report())
+
+
+def _as_arrays(mesh):
+    """(vertices, faces) from a path, a trimesh.Trimesh, or a (V, F) pair."""
+    if isinstance(mesh, (str, Path)):
+        return load_mesh(mesh)
+    if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+        return np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
+    try:
+        vertices, faces = mesh
+    except (TypeError, ValueError):
+        raise errors.UsageError("mesh must be a file path, a trimesh.Trimesh or a (vertices, faces) pair") \
+            from None
+    return np.asarray(vertices, float), np.asarray(faces)
+
+
+def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weight=None,
+                 target_angles=None, target_excess=None, formulation="substituted", max_iter=None,
+                 max_time=None, ipopt_options=None, progress=None, check=True):
+    """Map a closed genus-0 triangle mesh onto the unit sphere without overlaps.
+
+    Parameters
+    ----------
+    mesh : str, Path, trimesh.Trimesh or (vertices, faces)
+    target : {"original-angles", "original-areas", "equal-angles", "equal-areas"}
+        What the map aims for; see :mod:`sphere_nlp.targets`.
+    angle_weight, area_weight : float, optional
+        Weights of the angle and area terms of the objective (defaults depend on the mode).
+    target_angles : (t, 3) array, optional
+        Custom target corner angles (radians), replacing the mode's.
+    target_excess : (t,) array, optional
+        Custom target triangle areas, rescaled to total 4 pi, replacing the mode's.
+    formulation : {"substituted", "faithful"}
+        NLP formulation; both reach the same optimum (see :mod:`sphere_nlp.nlp`).
+    max_iter : int, optional
+        IPOPT iteration limit per stage.
+    max_time : float, optional
+        Wall-clock limit per IPOPT stage, in seconds.
+    ipopt_options : dict, optional
+        Extra IPOPT options.
+    progress : callable(stage, iteration, objective, violation, elapsed), optional
+        Called once per IPOPT iteration.
+    check : bool
+        Raise :class:`SolveError` / :class:`CertificateError` on failure (default). With False the
+        result is returned with ``success=False`` instead.
+
+    Returns
+    -------
+    SphericalParameterization
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import cylinder
+    >>> result = parameterize(cylinder(), target="equal-angles")
+    >>> result.certificate.valid, result.max_constraint_violation < 1e-8
+    (True, True)
+    """
+    if target not in MODES:
+        raise errors.UsageError("unknown target mode %r; choose one of %s" % (target, ", ".join(MODES)))
+    if formulation not in FORMULATIONS:
+        raise errors.UsageError("unknown formulation %r; choose one of %s"
+                                % (formulation, ", ".join(FORMULATIONS)))
+    timings = {}
+    clock = time.perf_counter()
+    start = clock
+
+    def lap(name):
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = timings.get(name, 0.0) + now - clock
+        clock = now
+
+    vertices, faces = _as_arrays(mesh)
+    lap("load")
+    vertices, faces, connectivity, repairs = validate_mesh(vertices, faces)
+    targets = make_targets(target, vertices, faces, connectivity.vertex_degree, angle_weight=angle_weight,
+                           area_weight=area_weight, target_angles=target_angles,
+                           target_excess=target_excess)
+    lap("build")
+    solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
+                            max_iter=max_iter, max_time=max_time, progress=progress)
+    lap("solve")
+    # Symbolic derivatives and IPOPT set-up happen inside the solve; book them as build time.
+    build_s = sum(s["build_s"] for s in solution.stages)
+    timings["solve"] -= build_s
+    timings["build"] += build_s
+
+    if np.isfinite(solution.angles).all() and not (solution.angles <= 0).any():
+        positions, unfold_info = unfold(connectivity, solution.angles)
+        positions /= np.linalg.norm(positions, axis=1, keepdims=True)
+    else:
+        positions = np.full((connectivity.n_vertices, 3), np.nan)
+        unfold_info = {}
+    lap("unfold")
+    certificate = certify(positions, faces)
+    angle_error = float(np.max(np.abs(spherical_angles(positions, faces) - solution.angles)))
+    if not np.isfinite(angle_error):
+        angle_error = float("inf")
+    lap("certify")
+    timings["total"] = time.perf_counter() - start
+
+    result = SphericalParameterization(
+        vertices=positions, faces=faces, input_vertices=vertices, angles=solution.angles,
+        excess=solution.excess, target_angles=targets.angles, target_excess=targets.excess,
+        target=targets.mode, formulation=formulation, success=solution.success and certificate.valid,
+        status=solution.status, iterations=solution.iterations, objective=solution.objective,
+        max_constraint_violation=solution.max_constraint_violation, max_angle_error=angle_error,
+        certificate=certificate, stages=solution.stages, timings=timings, repairs=repairs,
+        unfold_info=unfold_info, peak_rss_mb=peak_rss_mb())
+    if check and not solution.success:
+        raise errors.SolveError("the angle solve failed: IPOPT status %s after %d iterations"
+                                % (solution.status, solution.iterations), result)
+    if check and not certificate.valid:
+        raise errors.CertificateError("the sphere failed its certificate: " + certificate.reason, result)
+    return result

@@ -1,0 +1,304 @@
+"""Validated connectivity: check that a face list is a closed genus-0 surface, build the paper's tables.
+
+Conventions used everywhere in sphere_nlp:
+
+* ``faces[i, j]`` is the vertex at corner ``j`` of triangle ``i``; the *flat corner index* is
+  ``3 * i + j``, so ``angles.ravel()[3 * i + j]`` is the angle at that corner.
+* The edge *opposite* corner ``j`` joins ``faces[i, (j + 1) % 3]`` and ``faces[i, (j + 2) % 3]``.
+* Each edge ``k`` has two incident triangles ``edge_faces[k] = (I1, I2)`` and the local indices of the
+  corners opposite it in them, ``edge_opposite_corners[k] = (J1, J2)`` (the paper's I1, I2, J1, J2).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from . import errors
+
+
+@dataclass(frozen=True)
+class Connectivity:
+    """Tables of a closed, oriented, genus-0 triangle mesh (all plain numpy arrays).
+
+    Attributes
+    ----------
+    faces : (t, 3) int array
+        Triangles, consistently oriented.
+    n_vertices : int
+    edges : (m, 2) int array
+        Each undirected edge once, as (smaller, larger) vertex index.
+    edge_faces : (m, 2) int array
+        The two triangles I1, I2 sharing each edge.
+    edge_opposite_corners : (m, 2) int array
+        Local corner index (0..2) opposite the edge in I1 and in I2.
+    vertex_degree : (n,) int array
+        Number of corners (= triangles = edges) at each vertex.
+    """
+
+    faces: np.ndarray
+    n_vertices: int
+    edges: np.ndarray
+    edge_faces: np.ndarray
+    edge_opposite_corners: np.ndarray
+    vertex_degree: np.ndarray
+
+    @property
+    def n_faces(self):
+        return len(self.faces)
+
+    @property
+    def n_edges(self):
+        return len(self.edges)
+
+    def edge_corner_indices(self):
+        """Flat corner indices ``3 * I + J`` opposite each edge, shape (m, 2)."""
+        return 3 * self.edge_faces + self.edge_opposite_corners
+
+    def vertex_corner_matrix(self):
+        """Sparse (n, 3t) 0/1 matrix summing corner values around each vertex (constraint (7))."""
+        t = self.n_faces
+        return sp.csr_matrix((np.ones(3 * t), (self.faces.ravel(), np.arange(3 * t))),
+                             shape=(self.n_vertices, 3 * t))
+
+
+def _half_edges(faces):
+    """Directed edge opposite each corner, shape (t, 3, 2): (faces[i, j+1], faces[i, j+2])."""
+    return np.stack([np.roll(faces, -1, axis=1), np.roll(faces, -2, axis=1)], axis=2)
+
+
+def _pair(e):
+    return "%d-%d" % (e[0], e[1])
+
+
+def build_connectivity(faces, n_vertices):
+    """Check the topology of a face list and build the paper's connectivity tables.
+
+    Every vertex index ``0 .. n_vertices - 1`` must be used. Faces that are oriented inconsistently
+    with their neighbours are not accepted here; see :func:`orient_consistently`.
+
+    Parameters
+    ----------
+    faces : (t, 3) int array
+    n_vertices : int
+
+    Returns
+    -------
+    Connectivity
+
+    Raises
+    ------
+    FaceIndexError, OpenBoundaryError, NonManifoldEdgeError, OrientationError,
+    NonManifoldVertexError, ComponentsError, GenusError
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> V, F = octahedron()
+    >>> c = build_connectivity(F, len(V))
+    >>> c.n_edges, c.vertex_degree.tolist()
+    (12, [4, 4, 4, 4, 4, 4])
+    """
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise errors.FaceIndexError("faces must be a non-empty (t, 3) array of triangles, got shape %s"
+                                    % (faces.shape,))
+    faces = faces.astype(np.int64)
+    t = len(faces)
+    if faces.min() < 0 or faces.max() >= n_vertices:
+        bad = int(np.flatnonzero((faces < 0).any(1) | (faces >= n_vertices).any(1))[0])
+        raise errors.FaceIndexError("face %d refers to a vertex index outside 0..%d" % (bad, n_vertices - 1))
+    repeated = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
+    if repeated.any():
+        raise errors.FaceIndexError("%d face(s) repeat a vertex (e.g. face %d): degenerate triangles"
+                                    % (repeated.sum(), np.flatnonzero(repeated)[0]))
+    unused = np.setdiff1d(np.arange(n_vertices), faces.ravel())
+    if len(unused):
+        raise errors.FaceIndexError("%d vertex(es) are not used by any face (e.g. vertex %d)"
+                                    % (len(unused), unused[0]))
+
+    half = _half_edges(faces).reshape(-1, 2)           # row 3*i+j: edge opposite corner (i, j)
+    key = np.sort(half, axis=1)
+    edges, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    if (counts == 1).any():
+        bad = edges[counts == 1]
+        raise errors.OpenBoundaryError("mesh has %d boundary edge(s) (e.g. %s): it must be closed"
+                                       % (len(bad), _pair(bad[0])))
+    if (counts > 2).any():
+        bad = edges[counts > 2]
+        raise errors.NonManifoldEdgeError("mesh has %d non-manifold edge(s) shared by 3 or more faces "
+                                          "(e.g. %s)" % (len(bad), _pair(bad[0])))
+    m = len(edges)
+    order = np.argsort(inverse, kind="stable")          # the two corners of each edge, side by side
+    corners = order.reshape(m, 2)
+    same_direction = (half[corners[:, 0], 0] == half[corners[:, 1], 0])
+    if same_direction.any():
+        raise errors.OrientationError("%d edge(s) are traversed in the same direction by both faces "
+                                      "(e.g. %s): orientation is inconsistent"
+                                      % (same_direction.sum(), _pair(edges[same_direction][0])))
+    edge_faces, edge_opposite = corners // 3, corners % 3
+
+    # One component: faces linked through their shared edges.
+    adjacency = sp.coo_matrix((np.ones(m), (edge_faces[:, 0], edge_faces[:, 1])), shape=(t, t))
+    n_comp, _ = connected_components(adjacency, directed=False)
+    if n_comp > 1:
+        raise errors.ComponentsError("mesh has %d connected components: it must have exactly one" % n_comp)
+
+    # Vertex manifoldness: around each vertex, corners linked across shared edges form one fan.
+    # Across edge k = (a, b), the corner at a in I1 and the corner at a in I2 are neighbours.
+    links = []
+    for endpoint in (0, 1):
+        v = edges[:, endpoint]
+        c1 = 3 * edge_faces[:, 0] + np.argmax(faces[edge_faces[:, 0]] == v[:, None], axis=1)
+        c2 = 3 * edge_faces[:, 1] + np.argmax(faces[edge_faces[:, 1]] == v[:, None], axis=1)
+        links.append((c1, c2))
+    rows = np.concatenate([l[0] for l in links])
+    cols = np.concatenate([l[1] for l in links])
+    fans = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * t, 3 * t))
+    n_fans, fan_label = connected_components(fans, directed=False)
+    if n_fans != n_vertices:
+        fans_per_vertex = np.bincount(faces.ravel()[np.unique(fan_label, return_index=True)[1]],
+                                      minlength=n_vertices)
+        bad = np.flatnonzero(fans_per_vertex > 1)
+        raise errors.NonManifoldVertexError("mesh has %d non-manifold (pinched) vertex(es) (e.g. vertex %d)"
+                                            % (len(bad), bad[0]))
+
+    chi = n_vertices - m + t
+    if chi != 2:
+        genus = (2 - chi) // 2
+        raise errors.GenusError("mesh has genus %d (V - E + F = %d): only genus 0 (sphere-like) surfaces "
+                                "can be mapped to the sphere" % (genus, chi))
+    return Connectivity(faces=faces, n_vertices=int(n_vertices), edges=edges, edge_faces=edge_faces,
+                        edge_opposite_corners=edge_opposite,
+                        vertex_degree=np.bincount(faces.ravel(), minlength=n_vertices))
+
+
+def _edge_corner_pairs(faces):
+    """Directed half-edges (3t, 2) and, for each undirected edge, its two flat corner indices (m, 2)."""
+    half = _half_edges(faces).reshape(-1, 2)
+    _, inverse = np.unique(np.sort(half, axis=1), axis=0, return_inverse=True)
+    return half, np.argsort(inverse.ravel(), kind="stable").reshape(-1, 2)
+
+
+def orient_consistently(faces):
+    """Flip faces so that every edge is traversed once in each direction.
+
+    Orientation is propagated along a breadth-first spanning tree of each component; the winding
+    of the majority of its faces is kept, so as few faces as possible are flipped. Edges must already be manifold (two faces each).
+
+    Returns
+    -------
+    faces : (t, 3) int array
+    n_flipped : int
+
+    Raises
+    ------
+    OrientationError
+        For a non-orientable surface.
+    """
+    from scipy.sparse.csgraph import breadth_first_order
+
+    faces = np.asarray(faces, dtype=np.int64).copy()
+    t = len(faces)
+    half, corners = _edge_corner_pairs(faces)
+    f1, f2 = corners[:, 0] // 3, corners[:, 1] // 3
+    disagree = half[corners[:, 0], 0] == half[corners[:, 1], 0]
+    # Stored as 1 (agree) / 2 (disagree) so that both are explicit entries of the sparse matrix.
+    relation = sp.coo_matrix((disagree + 1.0, (f1, f2)), shape=(t, t)).tocsr()
+    relation = relation + relation.T
+    parent = np.full(t, -1)
+    component = np.full(t, -1)
+    for start in range(t):
+        if component[start] < 0:
+            order, pred = breadth_first_order(relation, start, directed=False)
+            component[order] = start
+            parent[order[1:]] = pred[order[1:]]
+    child = np.flatnonzero(parent >= 0)
+    parity = np.zeros(t, bool)
+    parity[child] = np.asarray(relation[child, parent[child]]).ravel() == 2
+    # Pointer doubling: parity to the root = XOR of the parities along the tree path.
+    ancestor = parent.copy()
+    has = ancestor >= 0
+    while has.any():
+        parity[has] = parity[has] ^ parity[ancestor[has]]   # right side uses the old values
+        ancestor[has] = ancestor[ancestor[has]]
+        has = ancestor >= 0
+    # Keep the winding of the majority of each component: flip the fewest faces.
+    flipped_share = np.bincount(component, weights=parity, minlength=t) / np.maximum(
+        np.bincount(component, minlength=t), 1)
+    parity ^= flipped_share[component] > 0.5
+    faces[parity] = faces[parity][:, ::-1]
+    half, corners = _edge_corner_pairs(faces)
+    if (half[corners[:, 0], 0] == half[corners[:, 1], 0]).any():
+        raise errors.OrientationError("mesh is not orientable (for example a Moebius band or Klein bottle)")
+    return faces, int(parity.sum())
+
+
+# A face whose smallest 3D corner angle is below this (radians) counts as degenerate: its corners are
+# collinear to working precision and its target angles and area mean nothing.
+DEGENERATE_ANGLE = 1e-10
+
+
+def validate_mesh(vertices, faces):
+    """Check a mesh for use as input and build its connectivity.
+
+    Repairs that do not change the surface are applied and listed: faces oriented inconsistently with
+    their neighbours are flipped to agree with face 0. Everything else that is wrong raises a
+    :class:`~sphere_nlp.errors.MeshInputError` subclass with a one-line message.
+
+    Parameters
+    ----------
+    vertices : (n, 3) array
+    faces : (t, 3) int array
+
+    Returns
+    -------
+    vertices : (n, 3) float array
+    faces : (t, 3) int array
+        Possibly with some faces flipped.
+    connectivity : Connectivity
+    repairs : list of str
+        One human-readable line per repair made.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import cylinder
+    >>> V, F = cylinder()
+    >>> F[0] = F[0, ::-1]
+    >>> V, F, conn, repairs = validate_mesh(V, F)
+    >>> repairs
+    ['flipped 1 face(s) to make the orientation consistent']
+    """
+    from .targets import corner_angles_3d
+
+    vertices = np.asarray(vertices, dtype=float)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
+        raise errors.UnreadableMeshError("vertices must be a non-empty (n, 3) array, got shape %s"
+                                         % (vertices.shape,))
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise errors.NonFiniteCoordinatesError("%d vertex(es) have non-finite coordinates (e.g. vertex %d)"
+                                               % (bad.sum(), np.flatnonzero(bad)[0]))
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise errors.FaceIndexError("faces must be a non-empty (t, 3) array of triangles, got shape %s"
+                                    % (faces.shape,))
+    if not np.issubdtype(faces.dtype, np.integer):
+        if not np.array_equal(faces, np.round(faces)):
+            raise errors.FaceIndexError("face indices must be integers")
+    faces = faces.astype(np.int64)
+    repairs = []
+    try:
+        connectivity = build_connectivity(faces, len(vertices))
+    except errors.OrientationError:
+        faces, flipped = orient_consistently(faces)
+        repairs.append("flipped %d face(s) to make the orientation consistent" % flipped)
+        connectivity = build_connectivity(faces, len(vertices))
+    min_angle = corner_angles_3d(vertices, faces).min(axis=1)
+    degenerate = ~(min_angle > DEGENERATE_ANGLE)
+    if degenerate.any():
+        raise errors.DegenerateFaceError("mesh has %d degenerate (zero-area) face(s) (e.g. face %d)"
+                                         % (degenerate.sum(), np.flatnonzero(degenerate)[0]))
+    return vertices, faces, connectivity, repairs

@@ -1,0 +1,270 @@
+"""The angle NLP of Sheffer, Gotsman & Dyn (2004), built symbolically in CasADi and solved by IPOPT.
+
+This is the only module that imports CasADi. Two formulations of the same problem are available:
+
+``faithful``
+    The paper as written: unknowns alpha (3t) and e (t); equality constraints (6) triangle
+    sums, (7) vertex sums, (8) edge consistency through the spherical cosine rule; inequalities
+    (3) alpha > 0, (4) e > 0, (5) e < 2 alpha. It is the reference the fast path is tested against.
+``substituted`` (default)
+    (6) is solved exactly for e = alpha0 + alpha1 + alpha2 - pi and substituted everywhere, leaving
+    3t unknowns, constraints (7) and (8), and the inequalities (3)-(5) as linear constraints in alpha.
+    Same feasible set, same objective, same optimum; fewer unknowns and constraints.
+
+Both keep (8) in the paper's quotient form, so the Lagrangian Hessian stays block-diagonal per
+triangle (multiplying it out couples the two triangles of every edge and is much slower).
+"""
+
+import time
+
+import casadi as ca
+import numpy as np
+
+FORMULATIONS = ("log-chord", "substituted", "faithful")
+
+# IPOPT statuses that count as a solution; everything else is a failure.
+SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+
+
+def _sparse_dm(matrix):
+    """scipy.sparse matrix -> CasADi DM with the same sparsity."""
+    csc = matrix.tocsc()
+    csc.sort_indices()
+    sparsity = ca.Sparsity(csc.shape[0], csc.shape[1], csc.indptr.tolist(), csc.indices.tolist())
+    return ca.DM(sparsity, csc.data)
+
+
+def edge_cosines_sx(alpha, prev_idx, next_idx):
+    """Cosine of the arc opposite every corner, by the spherical cosine rule (symbolic).
+
+    cos a = (cos A + cos B cos C) / (sin B sin C), with A the corner, B and C the other two.
+    """
+    cos_a, sin_a = ca.cos(alpha), ca.sin(alpha)
+    return (cos_a + cos_a[prev_idx] * cos_a[next_idx]) / (sin_a[prev_idx] * sin_a[next_idx])
+
+
+class _ProgressCallback(ca.Callback):
+    """IPOPT iteration callback forwarding (iteration, objective, violation, elapsed) to a function."""
+
+    def __init__(self, n_x, n_g, lbg, ubg, report):
+        ca.Callback.__init__(self)
+        self._n_x, self._n_g = n_x, n_g
+        self._lbg, self._ubg = lbg, ubg
+        self._report = report
+        self.iteration = 0
+        self.start = time.perf_counter()
+        self.construct("sphere_nlp_progress", {})
+
+    def get_n_in(self):
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self):
+        return 1
+
+    def get_name_in(self, i):
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i):
+        return "ret"
+
+    def get_sparsity_in(self, i):
+        name = ca.nlpsol_out(i)
+        if name == "f":
+            return ca.Sparsity.scalar()
+        if name in ("x", "lam_x"):
+            return ca.Sparsity.dense(self._n_x)
+        if name in ("g", "lam_g"):
+            return ca.Sparsity.dense(self._n_g)
+        return ca.Sparsity(0, 0)
+
+    def eval(self, arg):
+        g = np.asarray(arg[ca.nlpsol_out().index("g")]).ravel()
+        violation = float(np.max(np.maximum(self._lbg - g, g - self._ubg), initial=0.0))
+        self._report(self.iteration, float(arg[ca.nlpsol_out().index("f")]), violation,
+                     time.perf_counter() - self.start)
+        self.iteration += 1
+        return [0]
+
+
+class AngleNLP:
+    """The symbolic NLP for one mesh and one set of targets.
+
+    Parameters
+    ----------
+    connectivity : Connectivity
+    targets : Targets
+    formulation : {"substituted", "faithful"}
+
+    Notes
+    -----
+    Variables are packed as ``x = [alpha.ravel(), e]`` (faithful) or ``x = alpha.ravel()``
+    (substituted); use :meth:`pack` and :meth:`unpack`. Solver objects are created on first use,
+    because CasADi derives the sparse Hessian then.
+    """
+
+    def __init__(self, connectivity, targets, formulation="substituted"):
+        if formulation not in FORMULATIONS:
+            raise ValueError("unknown formulation %r; choose one of %s" % (formulation, FORMULATIONS))
+        self.formulation = formulation
+        self.connectivity = connectivity
+        t = connectivity.n_faces
+        self.n_faces = t
+        corner = np.arange(3 * t)
+        base, local = 3 * (corner // 3), corner % 3
+        prev_idx = (base + (local + 2) % 3).tolist()
+        next_idx = (base + (local + 1) % 3).tolist()
+        edge_corners = connectivity.edge_corner_indices()
+
+        n_alpha = 3 * t
+        n_x = n_alpha + (0 if formulation == "substituted" else t)
+        x = ca.SX.sym("x", n_x)
+        excess_index = np.repeat(np.arange(t), 3).tolist()
+        if formulation == "log-chord":
+            u, e = x[:n_alpha], x[n_alpha:]
+            alpha = u + e[excess_index] / 2
+            u_sums = ca.sum1(ca.reshape(u, 3, t)).T
+            log_half_chords = (ca.log(ca.sin(e / 2))[excess_index] + ca.log(ca.sin(u))
+                               - ca.log(ca.sin(u + u[next_idx])) - ca.log(ca.sin(u + u[prev_idx])))
+            edge_condition = (log_half_chords[edge_corners[:, 0].tolist()]
+                              - log_half_chords[edge_corners[:, 1].tolist()])
+            triangle_condition = u_sums + e / 2 - np.pi                # (6) in terms of u
+        else:
+            alpha = x[:n_alpha]
+            triangle_sums = ca.sum1(ca.reshape(alpha, 3, t)).T          # alpha0 + alpha1 + alpha2
+            if formulation == "faithful":
+                e = x[n_alpha:]
+                triangle_condition = triangle_sums - e - np.pi
+            else:
+                e = triangle_sums - np.pi                             # (6) solved for e
+                triangle_condition = None
+            cosines = edge_cosines_sx(alpha, prev_idx, next_idx)
+            edge_condition = cosines[edge_corners[:, 0].tolist()] - cosines[edge_corners[:, 1].tolist()]
+        vertex_sums = ca.mtimes(_sparse_dm(connectivity.vertex_corner_matrix()), alpha) - 2 * np.pi
+
+        equalities = [vertex_sums, edge_condition]
+        if triangle_condition is not None:
+            equalities.insert(0, triangle_condition)
+        g_eq = ca.vertcat(*equalities)
+
+        if formulation == "log-chord":
+            g_ineq = ca.SX(0, 1)             # (3)-(5) are the simple bounds u >= 0, e >= 0
+        else:
+            inequalities = [2 * alpha - e[excess_index]]              # (5): e < 2 alpha
+            if formulation == "substituted":
+                inequalities.insert(0, e)                             # (4): e > 0
+            g_ineq = ca.vertcat(*inequalities)
+
+        beta = targets.angles.ravel()
+        objective = (targets.angle_weight * ca.sumsqr(alpha - beta)
+                     + targets.area_weight * ca.sumsqr((e - targets.excess) / targets.excess_scale))
+
+        self.n_variables = n_x
+        self.n_equalities = g_eq.numel()
+        self.n_inequalities = g_ineq.numel()
+        self._x, self._f, self._g_eq, self._g_ineq = x, objective, g_eq, g_ineq
+        self._solvers = {}
+        self._functions = ca.Function("sphere_nlp_eval", [x], [objective, g_eq])
+
+    # -- packing ---------------------------------------------------------------------------------
+    def pack(self, angles, excess=None):
+        """Variables vector from angles (t, 3) (and excess (t,) for the faithful form)."""
+        if self.formulation == "log-chord":
+            angles = np.asarray(angles, float)
+            if excess is None:
+                excess = angles.sum(1) - np.pi
+            return np.concatenate([(angles - np.asarray(excess)[:, None] / 2).ravel(), excess])
+        angles = np.asarray(angles, float).ravel()
+        if self.formulation == "faithful":
+            if excess is None:
+                excess = angles.reshape(-1, 3).sum(1) - np.pi
+            return np.concatenate([angles, np.asarray(excess, float)])
+        return angles
+
+    def unpack(self, x):
+        """(angles (t, 3), excess (t,)) from a variables vector."""
+        x = np.asarray(x, float).ravel()
+        angles = x[:3 * self.n_faces].reshape(-1, 3)
+        if self.formulation == "log-chord":
+            excess = x[3 * self.n_faces:].copy()
+            return angles + excess[:, None] / 2, excess
+        if self.formulation == "faithful":
+            return angles, x[3 * self.n_faces:].copy()
+        return angles, angles.sum(1) - np.pi
+
+    def evaluate(self, x):
+        """Objective and equality-constraint residuals at x (numpy)."""
+        f, g = self._functions(x)
+        return float(f), np.asarray(g).ravel()
+
+    # -- solving ---------------------------------------------------------------------------------
+    def _bounds(self, inequalities):
+        lbx = np.full(self.n_variables, -np.inf)
+        if inequalities:
+            lbx[:] = 0.0          # (3) alpha > 0, (4) e > 0 (faithful), or u > 0, e > 0 (log-chord)
+        ubx = np.full(self.n_variables, np.inf)
+        lbg = np.zeros(self.n_equalities + (self.n_inequalities if inequalities else 0))
+        ubg = np.zeros_like(lbg)
+        if inequalities:
+            ubg[self.n_equalities:] = np.inf
+        return lbx, ubx, lbg, ubg
+
+    def _solver(self, inequalities, options, progress):
+        key = (inequalities, tuple(sorted(options.items())), progress is not None)
+        if key not in self._solvers:
+            g = ca.vertcat(self._g_eq, self._g_ineq) if inequalities else self._g_eq
+            opts = {"print_time": False, "show_eval_warnings": False, "ipopt": dict(options)}
+            callback = None
+            if progress is not None:
+                _, _, lbg, ubg = self._bounds(inequalities)
+                callback = _ProgressCallback(self.n_variables, g.numel(), lbg, ubg, progress)
+                opts["iteration_callback"] = callback
+            solver = ca.nlpsol("sphere_nlp", "ipopt", {"x": self._x, "f": self._f, "g": g}, opts)
+            self._solvers[key] = (solver, callback)
+        return self._solvers[key]
+
+    def solve(self, x0, inequalities=False, lam_g0=None, lam_x0=None, options=None, progress=None):
+        """Run IPOPT from x0.
+
+        Parameters
+        ----------
+        x0 : (n_variables,) array
+        inequalities : bool
+            Add (3)-(5); otherwise only the equality constraints.
+        lam_g0, lam_x0 : arrays, optional
+            Multipliers to warm-start from (lam_g0 may cover the equalities only).
+        options : dict
+            IPOPT options (without the "ipopt." prefix).
+        progress : callable(iteration, objective, violation, elapsed), optional
+
+        Returns
+        -------
+        dict with x, lam_g, lam_x, status, success, iterations, objective, time_s, build_s
+        """
+        start = time.perf_counter()
+        solver, callback = self._solver(inequalities, options or {}, progress)
+        build_s = time.perf_counter() - start
+        if callback is not None:
+            callback.iteration, callback.start = 0, time.perf_counter()
+        lbx, ubx, lbg, ubg = self._bounds(inequalities)
+        args = dict(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+        if lam_g0 is not None:
+            lam = np.zeros(len(lbg))
+            lam[:len(lam_g0)] = lam_g0
+            args["lam_g0"] = lam
+        if lam_x0 is not None:
+            args["lam_x0"] = lam_x0
+        start = time.perf_counter()
+        out = solver(**args)
+        stats = solver.stats()
+        status = stats.get("return_status", "unknown")
+        return {
+            "x": np.asarray(out["x"]).ravel(),
+            "lam_g": np.asarray(out["lam_g"]).ravel(),
+            "lam_x": np.asarray(out["lam_x"]).ravel(),
+            "objective": float(out["f"]),
+            "status": status,
+            "success": status in SUCCESS_STATUSES,
+            "iterations": int(stats.get("iter_count", 0)),
+            "time_s": time.perf_counter() - start,
+            "build_s": build_s,
+        }

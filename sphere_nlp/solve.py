@@ -1,0 +1,216 @@
+"""Solve for the spherical angles, staged as in section 4 of the paper.
+
+1. A linear least-squares start: the point closest to the targets (beta, e') that satisfies the linear
+   constraints (6) and (7) exactly.
+2. IPOPT with the equality constraints only.
+3. Only if the result has a non-positive angle or excess, or e >= 2 alpha somewhere, IPOPT again with
+   the inequalities (3)-(5) added, warm-started from stage 2.
+
+Plain numpy in and out; CasADi stays in :mod:`sphere_nlp.nlp`.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .nlp import AngleNLP
+
+DEFAULT_IPOPT_OPTIONS = {
+    "tol": 1e-8,
+    # IPOPT's default (1e-4) is far too loose: the unfolding needs the edge lengths to agree.
+    "constr_viol_tol": 1e-10,
+    "max_iter": 3000,
+    "print_level": 0,
+    "sb": "yes",
+    # Keep bounds exact: with the default relaxation an angle bounded by 0 can end slightly negative.
+    "bound_relax_factor": 0.0,
+}
+
+# Warm start of the inequality stage from the equality solution: start the barrier small and
+# move the start only a little into the interior, so IPOPT stays near the equality optimum.
+WARM_START_OPTIONS = {
+    "warm_start_init_point": "yes",
+    "mu_init": 1e-6,
+    "warm_start_bound_push": 1e-9,
+    "warm_start_bound_frac": 1e-9,
+    "warm_start_slack_bound_push": 1e-9,
+    "warm_start_slack_bound_frac": 1e-9,
+    "warm_start_mult_bound_push": 1e-9,
+}
+
+
+@dataclass
+class AngleSolution:
+    """Result of the angle solve.
+
+    Attributes
+    ----------
+    angles : (t, 3) array
+    excess : (t,) array
+    success : bool
+    status : str
+        IPOPT's return status of the last stage.
+    iterations : int
+        IPOPT iterations over all stages.
+    objective : float
+    max_constraint_violation : float
+        max |residual| of (6), (7), (8) at (angles, excess), (8) in the paper's quotient form.
+    stages : list of dict
+        One entry per IPOPT run: name, status, iterations, objective, time_s, build_s.
+    initial_angles, initial_excess : arrays
+        The linear least-squares start.
+    """
+
+    angles: np.ndarray
+    excess: np.ndarray
+    success: bool
+    status: str
+    iterations: int
+    objective: float
+    max_constraint_violation: float
+    stages: list = field(default_factory=list)
+    initial_angles: np.ndarray = None
+    initial_excess: np.ndarray = None
+
+
+def linear_initial_guess(connectivity, targets):
+    """Closest point to (beta, e') satisfying (6) and (7) exactly, by a sparse least-squares solve.
+
+    Minimises ||alpha - beta||^2 + ||e - e'||^2 subject to alpha0 + alpha1 + alpha2 - e = pi per
+    triangle and the angle sum 2 pi at every vertex.
+
+    Returns
+    -------
+    angles : (t, 3) array
+    excess : (t,) array
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import tetrahedron
+    >>> from sphere_nlp.connectivity import build_connectivity
+    >>> from sphere_nlp.targets import make_targets
+    >>> V, F = tetrahedron()
+    >>> c = build_connectivity(F, 4)
+    >>> angles, excess = linear_initial_guess(c, make_targets("original-angles", V, F, c.vertex_degree))
+    >>> np.allclose(angles, 2 * np.pi / 3), np.allclose(excess, np.pi)
+    (True, True)
+    """
+    t, n = connectivity.n_faces, connectivity.n_vertices
+    triangle_sum = sp.csr_matrix((np.ones(3 * t), (np.repeat(np.arange(t), 3), np.arange(3 * t))),
+                                 shape=(t, 3 * t))
+    A = sp.vstack([sp.hstack([triangle_sum, -sp.identity(t)]),
+                   sp.hstack([connectivity.vertex_corner_matrix(), sp.csr_matrix((n, t))])]).tocsr()
+    b = np.concatenate([np.full(t, np.pi), np.full(n, 2 * np.pi)])
+    x_target = np.concatenate([targets.angles.ravel(), targets.excess])
+    # (6) and (7) are independent (summing (7) minus summing (6) leaves sum(e)), so A A^T is
+    # positive definite and the minimum-norm correction is unique.
+    y = spla.spsolve((A @ A.T).tocsc(), b - A @ x_target)
+    x = x_target + A.T @ y
+    return x[:3 * t].reshape(t, 3), x[3 * t:]
+
+
+def constraint_residuals(connectivity, angles, excess):
+    """Residuals of the equality constraints at (angles, excess), in the paper's form.
+
+    Returns
+    -------
+    dict with arrays ``triangle`` (6) (t,), ``vertex`` (7) (n,), ``edge`` (8) (m,).
+    """
+    flat = np.asarray(angles, float).ravel()
+    t = len(excess)
+    corner = np.arange(3 * t)
+    base, local = 3 * (corner // 3), corner % 3
+    A, B, C = flat, flat[base + (local + 2) % 3], flat[base + (local + 1) % 3]
+    cosines = (np.cos(A) + np.cos(B) * np.cos(C)) / (np.sin(B) * np.sin(C))
+    c = connectivity.edge_corner_indices()
+    return {
+        "triangle": flat.reshape(-1, 3).sum(1) - excess - np.pi,
+        "vertex": connectivity.vertex_corner_matrix() @ flat - 2 * np.pi,
+        "edge": cosines[c[:, 0]] - cosines[c[:, 1]],
+    }
+
+
+def max_constraint_violation(connectivity, angles, excess):
+    """max |residual| over (6), (7), (8); NaN-safe (NaN counts as infinite)."""
+    worst = max(float(np.max(np.abs(r))) for r in constraint_residuals(connectivity, angles, excess).values())
+    return worst if np.isfinite(worst) else np.inf
+
+
+def violates_inequalities(angles, excess):
+    """True if some angle or excess is non-positive or some e >= 2 alpha (constraints (3)-(5))."""
+    return bool((angles <= 0).any() or (excess <= 0).any() or (excess[:, None] >= 2 * angles).any())
+
+
+def objective_value(targets, angles, excess):
+    """Objective (9) with the weights and scaling of :mod:`sphere_nlp.targets`."""
+    return float(targets.angle_weight * np.sum((angles - targets.angles) ** 2)
+                 + targets.area_weight * np.sum(((excess - targets.excess) / targets.excess_scale) ** 2))
+
+
+def solve_angles(connectivity, targets, formulation="substituted", ipopt_options=None,
+                 max_iter=None, max_time=None, progress=None):
+    """Staged solve: linear start, equality NLP, then the inequality NLP only if needed.
+
+    Parameters
+    ----------
+    connectivity : Connectivity
+    targets : Targets
+    formulation : {"substituted", "faithful"}
+    ipopt_options : dict, optional
+        Extra IPOPT options, overriding :data:`DEFAULT_IPOPT_OPTIONS`.
+    max_iter : int, optional
+        IPOPT iteration limit per stage.
+    max_time : float, optional
+        Wall-clock limit in seconds per stage.
+    progress : callable(stage, iteration, objective, violation, elapsed), optional
+
+    Returns
+    -------
+    AngleSolution
+    """
+    options = dict(DEFAULT_IPOPT_OPTIONS)
+    if max_iter is not None:
+        options["max_iter"] = int(max_iter)
+    if max_time is not None:
+        options["max_wall_time"] = float(max_time)
+    options.update(ipopt_options or {})
+
+    init_angles, init_excess = linear_initial_guess(connectivity, targets)
+    nlp = AngleNLP(connectivity, targets, formulation)
+
+    def stage_progress(name):
+        if progress is None:
+            return None
+        return lambda it, f, viol, elapsed: progress(name, it, f, viol, elapsed)
+
+    stages = []
+    run = nlp.solve(nlp.pack(init_angles, init_excess), inequalities=False, options=options,
+                    progress=stage_progress("equality"))
+    stages.append(dict(name="equality", **{k: run[k] for k in
+                                            ("status", "iterations", "objective", "time_s", "build_s")}))
+    angles, excess = nlp.unpack(run["x"])
+    if violates_inequalities(angles, excess):
+        warm = dict(options, **WARM_START_OPTIONS)
+        warm.update(ipopt_options or {})
+        start = run["x"]
+        run = nlp.solve(start, inequalities=True, lam_g0=run["lam_g"], options=warm,
+                        progress=stage_progress("inequality"))
+        if not run["success"]:
+            # A warm start from an infeasible point can stall; a cold start with the default barrier
+            # parameter is slower but robust.
+            cold = dict(options)
+            run = nlp.solve(nlp.pack(init_angles, init_excess), inequalities=True, options=cold,
+                            progress=stage_progress("inequality-cold"))
+        stages.append(dict(name="inequality", **{k: run[k] for k in
+                                                  ("status", "iterations", "objective", "time_s",
+                                                   "build_s")}))
+        angles, excess = nlp.unpack(run["x"])
+    violation = max_constraint_violation(connectivity, angles, excess)
+    success = bool(run["success"] and not violates_inequalities(angles, excess))
+    return AngleSolution(angles=angles, excess=excess, success=success, status=run["status"],
+                         iterations=sum(s["iterations"] for s in stages),
+                         objective=objective_value(targets, angles, excess),
+                         max_constraint_violation=violation, stages=stages,
+                         initial_angles=init_angles, initial_excess=init_excess)

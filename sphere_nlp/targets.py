@@ -1,0 +1,158 @@
+"""Targets of the objective (9): corner angles beta, triangle excesses e', and the weights of both terms.
+
+The objective sphere_nlp minimises is
+
+    f = angle_weight * sum (alpha - beta)^2  +  area_weight * sum ((e - e') / e_mean)^2
+
+with ``e_mean = 4 pi / t`` the mean spherical excess. Dividing the excess error by ``e_mean`` is the
+paper's (9) with the excess term scaled by ``1 / e_mean^2``: excesses shrink like 1/t, so the raw term
+would fade away on large meshes while the angle term does not; in relative units both terms grow like t
+and keep their balance at every mesh size.
+
+Modes (the names of the paper's Fig. 3):
+
+============== ======================================= ======================================= ========
+mode           beta                                    e'                                      weights
+============== ======================================= ======================================= ========
+equal-angles   2 pi / deg(v) at every corner of v      4 pi / t                                1, 0
+equal-areas    2 pi / deg(v)                           4 pi / t                                0.01, 1
+original-angles the mesh's 3D corner angles            3D areas scaled to sum 4 pi             1, 0
+original-areas the mesh's 3D corner angles             3D areas scaled to sum 4 pi             0.01, 1
+============== ======================================= ======================================= ========
+
+``2 pi / deg(v)`` is the only "equal" angle that constraint (7) allows at every vertex. The angle modes
+use the angle term alone, as the paper's figure does. The area modes keep a small angle term (weight
+0.01): triangle areas alone leave the map almost undetermined (about two degrees of freedom but many
+nearby minima), and the weak angle term picks the least distorted of them without visibly giving up
+area accuracy.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+MODES = ("equal-angles", "equal-areas", "original-angles", "original-areas")
+
+DEFAULT_WEIGHTS = {
+    "equal-angles": (1.0, 0.0),
+    "equal-areas": (0.01, 1.0),
+    "original-angles": (1.0, 0.0),
+    "original-areas": (0.01, 1.0),
+}
+
+
+@dataclass(frozen=True)
+class Targets:
+    """Targets and weights of the objective.
+
+    Attributes
+    ----------
+    angles : (t, 3) float array
+        Target corner angles beta (radians).
+    excess : (t,) float array
+        Target spherical excesses e' (radians, i.e. areas on the unit sphere).
+    angle_weight, area_weight : float
+        Weights of the two terms (see the module docstring for the scaling of the area term).
+    mode : str
+        The mode name, or "custom".
+    """
+
+    angles: np.ndarray
+    excess: np.ndarray
+    angle_weight: float
+    area_weight: float
+    mode: str
+
+    @property
+    def excess_scale(self):
+        """The unit of the area term, the mean excess 4 pi / t."""
+        return 4 * np.pi / len(self.excess)
+
+
+def corner_angles_3d(vertices, faces):
+    """Interior angles of each 3D triangle, (t, 3), ``[i, j]`` at vertex ``faces[i, j]``.
+
+    Uses atan2 of cross and dot products, which stays accurate for needle-thin triangles.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> V, F = octahedron()
+    >>> np.allclose(corner_angles_3d(V, F), np.pi / 3)
+    True
+    """
+    P = vertices[faces]                                   # (t, 3 corners, 3 coords)
+    to_next = np.roll(P, -1, axis=1) - P
+    to_prev = np.roll(P, 1, axis=1) - P
+    cross = np.linalg.norm(np.cross(to_next, to_prev), axis=2)
+    dot = np.einsum("tjk,tjk->tj", to_next, to_prev)
+    return np.arctan2(cross, dot)
+
+
+def triangle_areas_3d(vertices, faces):
+    """Area of each 3D triangle, (t,)."""
+    P = vertices[faces]
+    return 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
+
+
+def make_targets(mode, vertices, faces, vertex_degree, angle_weight=None, area_weight=None,
+                 target_angles=None, target_excess=None):
+    """Build the targets of one mode, optionally overriding weights or the targets themselves.
+
+    Parameters
+    ----------
+    mode : str
+        One of :data:`MODES`.
+    vertices : (n, 3) float array
+    faces : (t, 3) int array
+    vertex_degree : (n,) int array
+    angle_weight, area_weight : float, optional
+        Override the mode's weights (non-negative, not both zero).
+    target_angles : (t, 3) array, optional
+        Custom corner targets beta, replacing the mode's.
+    target_excess : (t,) array, optional
+        Custom excess targets e', replacing the mode's; they are rescaled to sum to 4 pi.
+
+    Returns
+    -------
+    Targets
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> V, F = octahedron()
+    >>> tg = make_targets("equal-angles", V, F, np.full(6, 4))
+    >>> float(tg.angles[0, 0]), float(tg.excess.sum() / np.pi)
+    (1.5707963267948966, 4.0)
+    """
+    from .errors import UsageError
+
+    if mode not in MODES:
+        raise UsageError("unknown target mode %r; choose one of %s" % (mode, ", ".join(MODES)))
+    t = len(faces)
+    if mode.startswith("equal"):
+        angles = np.broadcast_to(2 * np.pi / vertex_degree[faces], (t, 3)).astype(float)
+        excess = np.full(t, 4 * np.pi / t)
+    else:
+        angles = corner_angles_3d(vertices, faces)
+        areas = triangle_areas_3d(vertices, faces)
+        excess = 4 * np.pi * areas / areas.sum()
+    default_angle_weight, default_area_weight = DEFAULT_WEIGHTS[mode]
+    custom = False
+    if target_angles is not None:
+        angles = np.array(target_angles, dtype=float)
+        if angles.shape != (t, 3) or not np.isfinite(angles).all():
+            raise UsageError("target_angles must be a finite (t, 3) array, t = %d" % t)
+        custom = True
+    if target_excess is not None:
+        excess = np.array(target_excess, dtype=float)
+        if excess.shape != (t,) or not np.isfinite(excess).all() or excess.sum() <= 0:
+            raise UsageError("target_excess must be a finite (t,) array with a positive sum, t = %d" % t)
+        excess = excess * (4 * np.pi / excess.sum())
+        custom = True
+    angle_weight = default_angle_weight if angle_weight is None else float(angle_weight)
+    area_weight = default_area_weight if area_weight is None else float(area_weight)
+    if angle_weight < 0 or area_weight < 0 or angle_weight + area_weight == 0:
+        raise UsageError("weights must be non-negative and not both zero")
+    return Targets(angles=angles, excess=excess, angle_weight=angle_weight, area_weight=area_weight,
+                   mode=mode if not custom else "custom")

@@ -1,0 +1,136 @@
+"""Core pipeline: closed-form cases, constraint residuals, derivatives, formulations, certificates."""
+
+import numpy as np
+import pytest
+
+import sphere_nlp
+from sphere_nlp.certify import certify, signed_solid_angles, spherical_angles
+from sphere_nlp.connectivity import build_connectivity, validate_mesh
+from sphere_nlp.nlp import AngleNLP
+from sphere_nlp.shapes import cylinder, icosphere, octahedron, tetrahedron
+from sphere_nlp.solve import constraint_residuals, linear_initial_guess
+from sphere_nlp.targets import MODES, make_targets
+from sphere_nlp.unfold import half_chords_squared
+
+from conftest import MODELS
+
+
+def ellipsoid(subdivisions=2, axes=(1.0, 1.6, 0.7)):
+    V, F = icosphere(subdivisions)
+    return V * np.array(axes), F
+
+
+@pytest.mark.parametrize("shape, angle", [(tetrahedron, 2 * np.pi / 3), (octahedron, np.pi / 2)])
+@pytest.mark.parametrize("formulation", ["substituted", "faithful", "log-chord"])
+def test_regular_tilings_closed_form(shape, angle, formulation):
+    # Equal angles on a regular polyhedron: the optimum is the regular spherical tiling.
+    r = sphere_nlp.parameterize(shape(), target="equal-angles", formulation=formulation)
+    t = len(r.faces)
+    np.testing.assert_allclose(r.angles, angle, atol=1e-10)
+    np.testing.assert_allclose(r.excess, 4 * np.pi / t, atol=1e-10)
+    assert r.objective < 1e-18
+    assert r.certificate.valid
+    np.testing.assert_allclose(signed_solid_angles(r.vertices, r.faces), 4 * np.pi / t, atol=1e-12)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_linear_initial_guess_satisfies_linear_constraints(mode):
+    V, F = ellipsoid(2)
+    c = build_connectivity(F, len(V))
+    angles, excess = linear_initial_guess(c, make_targets(mode, V, F, c.vertex_degree))
+    res = constraint_residuals(c, angles, excess)
+    assert np.abs(res["triangle"]).max() < 1e-12
+    assert np.abs(res["vertex"]).max() < 1e-12
+
+
+@pytest.mark.parametrize("formulation", ["substituted", "faithful", "log-chord"])
+def test_jacobian_matches_finite_differences(formulation):
+    import casadi as ca
+
+    V, F = ellipsoid(1)
+    c = build_connectivity(F, len(V))
+    nlp = AngleNLP(c, make_targets("original-angles", V, F, c.vertex_degree), formulation)
+    rng = np.random.default_rng(1)
+    angles = np.full((c.n_faces, 3), np.pi / 3) + 0.05 * rng.random((c.n_faces, 3))
+    x = nlp.pack(angles, angles.sum(1) - np.pi + 0.01)
+    jac = ca.Function("j", [nlp._x], [ca.jacobian(nlp._g_eq, nlp._x)])(x).full()
+    step = 1e-6
+    for k in rng.choice(len(x), 12, replace=False):
+        dx = np.zeros_like(x)
+        dx[k] = step
+        fd = (nlp.evaluate(x + dx)[1] - nlp.evaluate(x - dx)[1]) / (2 * step)
+        np.testing.assert_allclose(jac[:, k], fd, atol=1e-7)
+
+
+def test_half_chord_formula_matches_cosine_rule():
+    rng = np.random.default_rng(2)
+    # Random valid spherical triangles from random points.
+    P = rng.normal(size=(200, 3, 3))
+    P /= np.linalg.norm(P, axis=2, keepdims=True)
+    F = np.arange(600).reshape(200, 3)
+    X = P.reshape(-1, 3)
+    keep = signed_solid_angles(X, F) > 0
+    angles = spherical_angles(X, F)[keep]
+    opposite = np.stack([np.arccos(np.clip(np.einsum("ij,ij->i", X[F[keep, (j + 1) % 3]],
+                                                      X[F[keep, (j + 2) % 3]]), -1, 1))
+                         for j in range(3)], axis=1)
+    np.testing.assert_allclose(half_chords_squared(angles), np.sin(opposite / 2) ** 2, atol=1e-12)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_cylinder_every_mode_certified(mode):
+    r = sphere_nlp.parameterize(str(MODELS / "cylinder.off"), target=mode)
+    assert r.certificate.valid and r.certificate.flipped == 0
+    assert abs(r.certificate.degree - 1) < 1e-9
+    assert r.max_constraint_violation <= 1e-8
+    assert r.max_angle_error <= 1e-6
+    # Solved angles and excesses are consistent with (6) and the Gauss-Bonnet total area.
+    np.testing.assert_allclose(r.angles.sum(1) - np.pi, r.excess, atol=1e-8)
+    assert abs(r.excess.sum() - 4 * np.pi) < 1e-8
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_formulations_reach_the_same_optimum(mode):
+    V, F = ellipsoid(2)
+    results = {f: sphere_nlp.parameterize((V, F), target=mode, formulation=f)
+               for f in ("faithful", "substituted", "log-chord")}
+    reference = results["faithful"].objective
+    for f, r in results.items():
+        assert r.certificate.valid, f
+        assert abs(r.objective - reference) <= 1e-8 * max(1.0, abs(reference)), (f, r.objective, reference)
+        np.testing.assert_allclose(r.angles, results["faithful"].angles, atol=1e-6)
+
+
+def test_original_angles_on_a_sphere_are_nearly_exact():
+    # A fine icosphere is almost a sphere: its spherical map must keep its angles nearly unchanged.
+    V, F = icosphere(3)
+    r = sphere_nlp.parameterize((V, F), target="original-angles")
+    from sphere_nlp.targets import corner_angles_3d
+    assert np.abs(r.angles - corner_angles_3d(V, F)).max() < 0.02
+    assert r.certificate.valid
+
+
+def test_certificate_detects_flip_and_norm_error():
+    V, F = octahedron()
+    X = V.copy()
+    X[4] = [0, 0, -0.2]                      # pull the north pole through: triangles flip
+    X[4] /= np.linalg.norm(X[4])
+    cert = certify(X, F)
+    assert not cert.valid and cert.flipped > 0
+    cert = certify(V * 1.001, F)
+    assert not cert.valid and "unit sphere" in cert.reason
+
+
+def test_validate_repairs_orientation():
+    V, F = cylinder()
+    F[[3, 10]] = F[[3, 10], ::-1]
+    V2, F2, c, repairs = validate_mesh(V, F)
+    assert repairs == ["flipped 2 face(s) to make the orientation consistent"]
+    np.testing.assert_array_equal(F2, cylinder()[1])
+
+
+def test_shipped_cylinder_is_regenerated_by_code(tmp_path):
+    from sphere_nlp.shapes import write_models
+
+    write_models(tmp_path)
+    assert (tmp_path / "cylinder.off").read_text() == (MODELS / "cylinder.off").read_text()
