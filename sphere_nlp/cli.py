@@ -18,6 +18,7 @@ EXAMPLES = """examples:
   python -m sphere_nlp models/cylinder.off
   python -m sphere_nlp bunny.off --target original-areas -o bunny_sphere.obj --report run.json
   python -m sphere_nlp head.ply --target equal-angles --save-solution angles.npz --quiet
+  python -m sphere_nlp reproduce fig3 --out fig3/   (the paper's Fig. 3: PNG, meshes, JSON)
 """
 
 
@@ -122,6 +123,10 @@ def run(args):
 
 def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["reproduce"]:      # `python -m sphere_nlp reproduce fig3 --out DIR`
+        from .reproduce import main as reproduce_main
+
+        return reproduce_main(argv[1:])
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
