@@ -119,7 +119,7 @@ def _view_aligned(points, axis_from, axis_to, facing):
                                                                                             [0, 0, 1])
 
 
-def _draw_panel(ax, points, faces, caption):
+def _draw_panel(ax, points, faces):
     """Draw the front-facing triangles, edges visible, the black triangle filled black."""
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
@@ -141,10 +141,9 @@ def _draw_panel(ax, points, faces, caption):
     ax.set_xlim(-1, 1)
     ax.set_ylim(-1, 1)
     ax.set_zlim(-1, 1)
-    ax.set_box_aspect((1, 1, 1))
+    ax.set_box_aspect((1, 1, 1), zoom=1.15)    # the empty corners of the box need no room
     ax.view_init(elev=VIEW_ELEVATION, azim=VIEW_AZIMUTH)
     ax.set_axis_off()
-    ax.set_title(caption, y=-0.04, fontsize=13)
 
 
 def render_fig3(path, vertices, faces, panel_positions):
@@ -156,14 +155,16 @@ def render_fig3(path, vertices, faces, panel_positions):
     from matplotlib.figure import Figure
 
     bottom, top = len(vertices) - 2, len(vertices) - 1      # the cap centres
-    fig = Figure(figsize=(12, 7.6), dpi=100)
+    fig = Figure(figsize=(12, 8), dpi=100)
     FigureCanvasAgg(fig)
     for index, (panel, _, _, caption) in enumerate(FIG3_PANELS):
+        row, column = divmod(index, 3)
         X = panel_positions[panel]
-        ax = fig.add_subplot(2, 3, index + 1, projection="3d")
+        # Fixed boxes, caption under each: 3D axes place their titles unreliably.
+        ax = fig.add_axes((column / 3, 0.5 * (1 - row) + 0.06, 1 / 3, 0.44), projection="3d")
         points = _view_aligned(X, X[bottom], X[top], X[faces[BLACK_TRIANGLE]].mean(axis=0))
-        _draw_panel(ax, points, faces, caption)
-    fig.subplots_adjust(left=0, right=1, bottom=0.03, top=1, wspace=0, hspace=0.02)
+        _draw_panel(ax, points, faces)
+        fig.text(column / 3 + 1 / 6, 0.5 * (1 - row) + 0.05, caption, ha="center", fontsize=13)
     with atomic_output(path, "wb") as out:
         fig.savefig(out, format="png")
 
