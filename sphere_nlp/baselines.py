@@ -82,7 +82,7 @@ def alexa_relaxation(vertices, faces, max_iter=10000, tol=1e-10, step=0.5, start
 
     * **Start** (``start``): the central projection of the vertices from the mesh's centroid, which is
       a valid map for meshes star-shaped about it (the cylinder is); ``"normals"`` uses the Gauss map
-      (area-weighted vertex normals) instead, the other start Alexa suggests.
+      (area-weighted vertex normals) instead, for meshes that are not star-shaped.
     * **Edge-length weights** (``edge_length_weights``): neighbour j of vertex i gets weight
       ``|x_j - x_i|``, Alexa's measure against fold-overs: long (stretched) edges pull harder than
       short ones, so crowded, folded regions spread out instead of being pulled further together.

@@ -248,7 +248,12 @@ def main(argv=None):
         if not args.quiet:
             print("reproduce %s: %s" % (args.figure, line), file=sys.stderr)
 
-    records = FIGURES[args.figure](args.out, progress=say)
+    try:
+        records = FIGURES[args.figure](args.out, progress=say)
+    except OSError as exc:
+        print("sphere_nlp reproduce: error: cannot write to %s: %s" % (args.out, exc.strerror or exc),
+              file=sys.stderr)
+        return 2
     failed = [r["panel"] for r in records if not r["valid"]]
     say("wrote %s" % (Path(args.out) / ("%s.png" % args.figure)))
     if failed:

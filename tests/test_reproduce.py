@@ -33,6 +33,12 @@ def test_fig3_writes_figure_meshes_and_numbers_in_under_a_minute(fig3):
     assert sorted(panels) == list("abcdef")
     png = (out / "fig3.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 50_000   # six shaded panels, not a blank
+    from matplotlib.image import imread
+
+    pixels = imread(out / "fig3.png")[..., :3].mean(axis=2)
+    assert pixels.shape == (800, 1200)
+    assert 0.2 < (pixels < 0.95).mean() < 0.8        # drawn surfaces and white background
+    assert (pixels < 0.05).mean() > 0.005            # the black triangles and the edges
     keys = {"panel", "method", "target", "valid", "mean_abs_angle_diff_deg", "mean_abs_log_area",
             "area_cv", "min_angle_deg", "black_triangle_angles_deg", "cap_area_share", "time_s"}
     V, F = cylinder()
@@ -116,3 +122,10 @@ def test_black_triangle_is_a_side_triangle_in_the_middle():
     assert BLACK_TRIANGLE < SIDE_TRIANGLES
     z = V[F[BLACK_TRIANGLE], 2]
     assert z.min() >= 0 and z.max() <= 1 / 3 + 1e-12
+
+
+def test_reproduce_unknown_figure_is_usage_error(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "sphere_nlp", "reproduce", "fig9", "--out", str(tmp_path)],
+                       capture_output=True, text=True)
+    assert p.returncode == 2 and "invalid choice" in p.stderr
+    assert list(tmp_path.iterdir()) == []
