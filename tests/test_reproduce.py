@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 
+from conftest import MODELS
 from sphere_nlp.certify import certify, spherical_angles
 from sphere_nlp.mesh_io import load_mesh
 from sphere_nlp.reproduce import BLACK_TRIANGLE, SIDE_TRIANGLES
@@ -47,6 +48,11 @@ def test_fig3_writes_figure_meshes_and_numbers_in_under_a_minute(fig3):
         assert len(record["black_triangle_angles_deg"]) == 3
         X, faces = load_mesh(out / ("fig3_%s.off" % panel))
         np.testing.assert_array_equal(faces, F)
+    # Panel (a) is the shipped model.
+    shipped = load_mesh(MODELS / "cylinder.off")
+    a = load_mesh(out / "fig3_a.off")
+    np.testing.assert_array_equal(a[1], shipped[1])
+    np.testing.assert_allclose(a[0], shipped[0], atol=1e-15)
 
 
 def test_fig3_all_computed_panels_are_certified(fig3):
