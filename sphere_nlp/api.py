@@ -12,7 +12,7 @@ from . import errors
 from .certify import Certificate, certify, spherical_angles
 from .connectivity import validate_mesh
 from .mesh_io import check_mesh_path, load_mesh, write_json, write_mesh, write_npz
-from .nlp import FORMULATIONS
+from .nlp import DEFAULT_FORMULATION, FORMULATIONS
 from .solve import solve_angles
 from .targets import MODES, make_targets
 from .unfold import unfold
@@ -147,8 +147,8 @@ def _as_arrays(mesh):
 
 
 def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weight=None,
-                 target_angles=None, target_excess=None, formulation="substituted", max_iter=None,
-                 max_time=None, ipopt_options=None, progress=None, check=True):
+                 target_angles=None, target_excess=None, formulation=DEFAULT_FORMULATION, max_iter=None,
+                 max_time=None, ipopt_options=None, progress=None, start=None, check=True):
     """Map a closed genus-0 triangle mesh onto the unit sphere without overlaps.
 
     Parameters
@@ -162,8 +162,9 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         Custom target corner angles (radians), replacing the mode's.
     target_excess : (t,) array, optional
         Custom target triangle areas, rescaled to total 4 pi, replacing the mode's.
-    formulation : {"substituted", "faithful"}
-        NLP formulation; both reach the same optimum (see :mod:`sphere_nlp.nlp`).
+    formulation : {"log-chord", "substituted", "faithful"}
+        NLP formulation; all reach the same optimum (see :mod:`sphere_nlp.nlp`). ``faithful`` is the
+        paper verbatim with its staged solve; ``log-chord`` is the robust default.
     max_iter : int, optional
         IPOPT iteration limit per stage.
     max_time : float, optional
@@ -172,6 +173,9 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         Extra IPOPT options.
     progress : callable(stage, iteration, objective, violation, elapsed), optional
         Called once per IPOPT iteration.
+    start : {"embedding", "linear"}, optional
+        Starting point of the solve: a valid spherical triangulation (default for log-chord) or the
+        paper's linear least-squares start (default for faithful and substituted).
     check : bool
         Raise :class:`SolveError` / :class:`CertificateError` on failure (default). With False the
         result is returned with ``success=False`` instead.
@@ -194,7 +198,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
                                 % (formulation, ", ".join(FORMULATIONS)))
     timings = {}
     clock = time.perf_counter()
-    start = clock
+    run_started = clock
 
     def lap(name):
         nonlocal clock
@@ -210,7 +214,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
                            target_excess=target_excess)
     lap("build")
     solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
-                            max_iter=max_iter, max_time=max_time, progress=progress)
+                            max_iter=max_iter, max_time=max_time, progress=progress,
+                            vertices=vertices, start=start)
     lap("solve")
     # Symbolic derivatives and IPOPT set-up happen inside the solve; book them as build time.
     build_s = sum(s["build_s"] for s in solution.stages)
@@ -218,7 +223,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     timings["build"] += build_s
 
     if np.isfinite(solution.angles).all() and not (solution.angles <= 0).any():
-        positions, unfold_info = unfold(connectivity, solution.angles)
+        positions, unfold_info = unfold(connectivity, solution.angles, excess=solution.excess)
         positions /= np.linalg.norm(positions, axis=1, keepdims=True)
     else:
         positions = np.full((connectivity.n_vertices, 3), np.nan)
@@ -229,7 +234,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     if not np.isfinite(angle_error):
         angle_error = float("inf")
     lap("certify")
-    timings["total"] = time.perf_counter() - start
+    timings["total"] = time.perf_counter() - run_started
 
     result = SphericalParameterization(
         vertices=positions, faces=faces, input_vertices=vertices, angles=solution.angles,

@@ -40,8 +40,8 @@ def build_parser():
                         help="what the map aims for (default: original-angles)")
     method.add_argument("--angle-weight", type=float, help="weight of the angle term (mode default)")
     method.add_argument("--area-weight", type=float, help="weight of the area term (mode default)")
-    method.add_argument("--formulation", default="substituted", choices=("substituted", "faithful"),
-                        help="NLP formulation (default: substituted; faithful = the paper verbatim)")
+    method.add_argument("--formulation", default="log-chord", choices=("log-chord", "substituted", "faithful"),
+                        help="NLP formulation (default: log-chord; faithful = the paper verbatim)")
     limits = parser.add_argument_group("solver limits")
     limits.add_argument("--max-iter", type=int, help="IPOPT iteration limit per stage")
     limits.add_argument("--max-time", type=float, help="wall-clock limit per IPOPT stage, seconds")

@@ -11,7 +11,15 @@ This is the only module that imports CasADi. Two formulations of the same proble
     3t unknowns, constraints (7) and (8), and the inequalities (3)-(5) as linear constraints in alpha.
     Same feasible set, same objective, same optimum; fewer unknowns and constraints.
 
-Both keep (8) in the paper's quotient form, so the Lagrangian Hessian stays block-diagonal per
+``log-chord`` (default)
+    Unknowns p = log u and s = log e, where u_j = alpha_j - e/2. Every p and s gives u, e > 0, and
+    u > 0 is exactly e < 2 alpha, so (3)-(5) hold strictly at every iterate without being
+    constraints. (6) is sum(u) + e/2 = pi, (7) sums u + e/2, and (8) compares the log half-chords
+    log sin^2(a/2) = log sin(e/2) + log sin u_j - log sin(u_j + u_k) - log sin(u_j + u_l), the half-angle
+    form of the cosine rule: it measures relative edge-length mismatch, so it is equally accurate for
+    triangles of any size, and excesses can move over many orders of magnitude by additive steps.
+
+The faithful and substituted forms keep (8) in the paper's quotient form, so the Lagrangian Hessian stays block-diagonal per
 triangle (multiplying it out couples the two triangles of every edge and is much slower).
 """
 
@@ -21,6 +29,7 @@ import casadi as ca
 import numpy as np
 
 FORMULATIONS = ("log-chord", "substituted", "faithful")
+DEFAULT_FORMULATION = "log-chord"
 
 # IPOPT statuses that count as a solution; everything else is a failure.
 SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
@@ -93,7 +102,13 @@ class AngleNLP:
     ----------
     connectivity : Connectivity
     targets : Targets
-    formulation : {"substituted", "faithful"}
+    formulation : {"log-chord", "substituted", "faithful"}
+    dropped_vertices : sequence of int
+        Vertices whose angle-sum constraint (7) is left out. At a solution the equality Jacobian has
+        exactly three redundant rows (its left null space is spanned by the vertex coordinates
+        x, y, z), which makes the KKT matrix singular; leaving out (7) at three vertices whose
+        positions are linearly independent removes the redundancy, and those three sums then hold
+        automatically. :func:`sphere_nlp.solve.solve_angles` checks all of (7) afterwards.
 
     Notes
     -----
@@ -102,7 +117,7 @@ class AngleNLP:
     because CasADi derives the sparse Hessian then.
     """
 
-    def __init__(self, connectivity, targets, formulation="substituted"):
+    def __init__(self, connectivity, targets, formulation=DEFAULT_FORMULATION, dropped_vertices=()):
         if formulation not in FORMULATIONS:
             raise ValueError("unknown formulation %r; choose one of %s" % (formulation, FORMULATIONS))
         self.formulation = formulation
@@ -120,7 +135,8 @@ class AngleNLP:
         x = ca.SX.sym("x", n_x)
         excess_index = np.repeat(np.arange(t), 3).tolist()
         if formulation == "log-chord":
-            u, e = x[:n_alpha], x[n_alpha:]
+            # Positive by construction: x holds log u and log e, so (3)-(5) hold strictly everywhere.
+            u, e = ca.exp(x[:n_alpha]), ca.exp(x[n_alpha:])
             alpha = u + e[excess_index] / 2
             u_sums = ca.sum1(ca.reshape(u, 3, t)).T
             log_half_chords = (ca.log(ca.sin(e / 2))[excess_index] + ca.log(ca.sin(u))
@@ -139,7 +155,9 @@ class AngleNLP:
                 triangle_condition = None
             cosines = edge_cosines_sx(alpha, prev_idx, next_idx)
             edge_condition = cosines[edge_corners[:, 0].tolist()] - cosines[edge_corners[:, 1].tolist()]
-        vertex_sums = ca.mtimes(_sparse_dm(connectivity.vertex_corner_matrix()), alpha) - 2 * np.pi
+        kept_vertices = np.setdiff1d(np.arange(connectivity.n_vertices), dropped_vertices)
+        vertex_matrix = connectivity.vertex_corner_matrix()[kept_vertices]
+        vertex_sums = ca.mtimes(_sparse_dm(vertex_matrix), alpha) - 2 * np.pi
 
         equalities = [vertex_sums, edge_condition]
         if triangle_condition is not None:
@@ -172,7 +190,12 @@ class AngleNLP:
             angles = np.asarray(angles, float)
             if excess is None:
                 excess = angles.sum(1) - np.pi
-            return np.concatenate([(angles - np.asarray(excess)[:, None] / 2).ravel(), excess])
+            u = angles - np.asarray(excess)[:, None] / 2
+            # A start outside the valid region is moved just inside it (log needs u, e > 0).
+            # A start outside the valid region is moved just inside it (the logarithm needs u, e > 0).
+            u = np.where(u > 0, u, 1e-3).ravel()
+            excess = np.where(excess > 0, excess, 1e-3 * 4 * np.pi / len(excess))
+            return np.log(np.concatenate([u, excess]))
         angles = np.asarray(angles, float).ravel()
         if self.formulation == "faithful":
             if excess is None:
@@ -185,8 +208,8 @@ class AngleNLP:
         x = np.asarray(x, float).ravel()
         angles = x[:3 * self.n_faces].reshape(-1, 3)
         if self.formulation == "log-chord":
-            excess = x[3 * self.n_faces:].copy()
-            return angles + excess[:, None] / 2, excess
+            excess = np.exp(x[3 * self.n_faces:])
+            return np.exp(angles) + excess[:, None] / 2, excess
         if self.formulation == "faithful":
             return angles, x[3 * self.n_faces:].copy()
         return angles, angles.sum(1) - np.pi

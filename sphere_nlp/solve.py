@@ -1,4 +1,11 @@
-"""Solve for the spherical angles, staged as in section 4 of the paper.
+"""Solve for the spherical angles.
+
+``log-chord`` (default): start from a valid spherical triangulation of the mesh
+(:func:`sphere_nlp.embedding.convex_embedding`), whose angles satisfy every constraint, and run IPOPT
+once: the inequalities (3)-(5) hold by construction in that formulation, and the three redundant
+vertex constraints are left out (see :class:`sphere_nlp.nlp.AngleNLP`).
+
+``faithful`` and ``substituted``: staged as in section 4 of the paper:
 
 1. A linear least-squares start: the point closest to the targets (beta, e') that satisfies the linear
    constraints (6) and (7) exactly.
@@ -15,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .nlp import AngleNLP
+from .nlp import DEFAULT_FORMULATION, AngleNLP
 
 DEFAULT_IPOPT_OPTIONS = {
     "tol": 1e-8,
@@ -149,15 +156,41 @@ def objective_value(targets, angles, excess):
                  + targets.area_weight * np.sum(((excess - targets.excess) / targets.excess_scale) ** 2))
 
 
-def solve_angles(connectivity, targets, formulation="substituted", ipopt_options=None,
-                 max_iter=None, max_time=None, progress=None):
-    """Staged solve: linear start, equality NLP, then the inequality NLP only if needed.
+def independent_vertices(positions):
+    """Three vertices whose positions are as close to orthonormal as the mesh allows."""
+    first = int(np.argmax(positions[:, 2]))
+    second = int(np.argmin(np.abs(positions @ positions[first])))
+    normal = np.cross(positions[first], positions[second])
+    third = int(np.argmax(np.abs(positions @ normal)))
+    return [first, second, third]
+
+
+def feasible_start(connectivity, vertices=None):
+    """Angles and excesses of a valid spherical triangulation of the mesh, and its positions.
+
+    Returns
+    -------
+    angles : (t, 3) array
+    excess : (t,) array
+    positions : (n, 3) array
+    """
+    from .certify import signed_solid_angles, spherical_angles
+    from .embedding import convex_embedding
+
+    positions = convex_embedding(connectivity, vertices, weights="uniform")
+    return (spherical_angles(positions, connectivity.faces),
+            signed_solid_angles(positions, connectivity.faces), positions)
+
+
+def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_options=None,
+                 max_iter=None, max_time=None, progress=None, vertices=None, start=None):
+    """Solve the angle NLP (see the module docstring for the strategy of each formulation).
 
     Parameters
     ----------
     connectivity : Connectivity
     targets : Targets
-    formulation : {"substituted", "faithful"}
+    formulation : {"log-chord", "substituted", "faithful"}
     ipopt_options : dict, optional
         Extra IPOPT options, overriding :data:`DEFAULT_IPOPT_OPTIONS`.
     max_iter : int, optional
@@ -165,6 +198,11 @@ def solve_angles(connectivity, targets, formulation="substituted", ipopt_options
     max_time : float, optional
         Wall-clock limit in seconds per stage.
     progress : callable(stage, iteration, objective, violation, elapsed), optional
+    vertices : (n, 3) array, optional
+        3D positions; used only to pick the outer face of the starting embedding.
+    start : {"embedding", "linear"}, optional
+        Starting point: the angles of a valid spherical triangulation, or the paper's linear
+        least-squares start. Default "embedding" for log-chord, "linear" for the paper's forms.
 
     Returns
     -------
@@ -177,15 +215,32 @@ def solve_angles(connectivity, targets, formulation="substituted", ipopt_options
         options["max_wall_time"] = float(max_time)
     options.update(ipopt_options or {})
 
-    init_angles, init_excess = linear_initial_guess(connectivity, targets)
-    nlp = AngleNLP(connectivity, targets, formulation)
-
     def stage_progress(name):
         if progress is None:
             return None
         return lambda it, f, viol, elapsed: progress(name, it, f, viol, elapsed)
 
     stages = []
+    if start is None:
+        start = "embedding" if formulation == "log-chord" else "linear"
+    if start not in ("embedding", "linear"):
+        raise ValueError("start must be 'embedding' or 'linear'")
+    if start == "embedding":
+        init_angles, init_excess, start_positions = feasible_start(connectivity, vertices)
+    else:
+        init_angles, init_excess = linear_initial_guess(connectivity, targets)
+    if formulation == "log-chord":
+        dropped = independent_vertices(start_positions) if start == "embedding" else []
+        nlp = AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped)
+        run = nlp.solve(nlp.pack(init_angles, init_excess), options=options,
+                        progress=stage_progress("log-chord"))
+        stages.append(dict(name="log-chord", **{k: run[k] for k in
+                                                 ("status", "iterations", "objective", "time_s",
+                                                  "build_s")}))
+        angles, excess = nlp.unpack(run["x"])
+        return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess)
+
+    nlp = AngleNLP(connectivity, targets, formulation)
     run = nlp.solve(nlp.pack(init_angles, init_excess), inequalities=False, options=options,
                     progress=stage_progress("equality"))
     stages.append(dict(name="equality", **{k: run[k] for k in
@@ -194,8 +249,7 @@ def solve_angles(connectivity, targets, formulation="substituted", ipopt_options
     if violates_inequalities(angles, excess):
         warm = dict(options, **WARM_START_OPTIONS)
         warm.update(ipopt_options or {})
-        start = run["x"]
-        run = nlp.solve(start, inequalities=True, lam_g0=run["lam_g"], options=warm,
+        run = nlp.solve(run["x"], inequalities=True, lam_g0=run["lam_g"], options=warm,
                         progress=stage_progress("inequality"))
         if not run["success"]:
             # A warm start from an infeasible point can stall; a cold start with the default barrier
@@ -207,6 +261,10 @@ def solve_angles(connectivity, targets, formulation="substituted", ipopt_options
                                                   ("status", "iterations", "objective", "time_s",
                                                    "build_s")}))
         angles, excess = nlp.unpack(run["x"])
+    return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess)
+
+
+def _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess):
     violation = max_constraint_violation(connectivity, angles, excess)
     success = bool(run["success"] and not violates_inequalities(angles, excess))
     return AngleSolution(angles=angles, excess=excess, success=success, status=run["status"],

@@ -14,25 +14,30 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
 
 
-def half_chords_squared(angles):
+def half_chords_squared(angles, excess=None):
     """sin^2(a / 2) for the arc a opposite every corner, from the triangle's own angles, (t, 3).
 
     Uses the half-angle form of the spherical cosine rule,
     sin^2(a/2) = sin(E/2) cos(S - A) / (sin B sin C), with E the excess and S = (pi + E) / 2, which stays
     accurate for short arcs where cos a is close to 1 and the plain cosine rule loses digits.
+    Pass the solved ``excess`` when it is known: recomputing E = A + B + C - pi loses all its digits
+    for tiny triangles (E of 1e-13 next to angles of 1).
     """
     A = np.asarray(angles, float)
     B, C = np.roll(A, -1, axis=1), np.roll(A, -2, axis=1)
-    excess = A.sum(1, keepdims=True) - np.pi
-    return np.sin(excess / 2) * np.cos((np.pi + excess) / 2 - A) / (np.sin(B) * np.sin(C))
+    if excess is None:
+        excess = A.sum(1) - np.pi
+    excess = np.asarray(excess, float)[:, None]
+    # cos(S - A) = sin(A - E/2): the same quantity without the cancellation near pi/2.
+    return np.sin(excess / 2) * np.sin(A - excess / 2) / (np.sin(B) * np.sin(C))
 
 
-def edge_chords(connectivity, angles):
+def edge_chords(connectivity, angles, excess=None):
     """Chord length 2 sin(a/2) of every edge, averaged over its two triangles, (m,).
 
     Also returns the largest relative disagreement between the two triangles of an edge.
     """
-    s2 = np.clip(half_chords_squared(angles), 0.0, 1.0).ravel()
+    s2 = np.clip(half_chords_squared(angles, excess), 0.0, 1.0).ravel()
     chord = 2 * np.sqrt(s2)
     c = connectivity.edge_corner_indices()
     c1, c2 = chord[c[:, 0]], chord[c[:, 1]]
@@ -68,7 +73,7 @@ def _place_third(pu, pv, chord_uw, chord_vw):
     return w / np.linalg.norm(w, axis=1, keepdims=True)
 
 
-def unfold(connectivity, angles, seed_face=None):
+def unfold(connectivity, angles, seed_face=None, excess=None):
     """Vertex positions on the unit sphere that realise the solved angles.
 
     Parameters
@@ -78,6 +83,8 @@ def unfold(connectivity, angles, seed_face=None):
         Solved spherical angles (they must satisfy (6)-(8)).
     seed_face : int, optional
         First triangle to place; default :func:`central_face`.
+    excess : (t,) array, optional
+        Solved excesses (more accurate than recomputing them from the angles).
 
     Returns
     -------
@@ -97,7 +104,7 @@ def unfold(connectivity, angles, seed_face=None):
     """
     F = connectivity.faces
     n = connectivity.n_vertices
-    chords, mismatch = edge_chords(connectivity, angles)
+    chords, mismatch = edge_chords(connectivity, angles, excess)
     # Lookup of chord by vertex pair through a sparse matrix (symmetric).
     e = connectivity.edges
     chord_of = sp.coo_matrix((np.r_[chords, chords], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),

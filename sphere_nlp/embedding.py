@@ -1,0 +1,167 @@
+"""A valid spherical triangulation of any closed genus-0 mesh, used as a feasible starting point.
+
+Construction (exact in exact arithmetic, by Tutte's and Maxwell-Cremona's theorems):
+
+1. Remove one triangle and embed the rest in the plane inside it with a Tutte embedding (positive,
+   symmetric edge weights; each interior vertex is the weighted mean of its neighbours). The result
+   is a planar triangulation with no fold-overs.
+2. The weights are an equilibrium stress of that framework (the three outer edges get the
+   compressions that balance the outer vertices). Lifting it (Maxwell-Cremona) gives heights that
+   make the triangulation the boundary of a convex polytope, with the removed triangle as its top face.
+3. Central projection from a point inside the polytope maps every face to a spherical triangle with
+   the right orientation, and the faces tile the sphere once.
+
+The angles of this triangulation satisfy every constraint of the NLP, so a solve started from them
+starts feasible. Because Tutte-type embeddings shrink some regions exponentially, the triangles can
+become tiny on large, long-limbed meshes; what survives floating point is checked by the caller.
+"""
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+
+def _rot90(v):
+    return np.stack([-v[..., 1], v[..., 0]], axis=-1)
+
+
+def edge_weights(vertices, connectivity, kind="cotan"):
+    """Positive symmetric edge weights: clamped cotangent weights, or uniform ones."""
+    if kind == "uniform" or vertices is None:
+        return np.ones(connectivity.n_edges)
+    from .targets import corner_angles_3d
+
+    cot = 1 / np.tan(np.clip(corner_angles_3d(vertices, connectivity.faces), 1e-6, np.pi - 1e-6))
+    c = connectivity.edge_corner_indices()
+    w = 0.5 * (cot.ravel()[c[:, 0]] + cot.ravel()[c[:, 1]])
+    # Clamp to keep Tutte's theorem (positive weights), relative to the typical weight.
+    return np.maximum(w, 1e-3 * np.median(np.abs(w)))
+
+
+def planar_tutte(connectivity, weights, outer_face):
+    """Tutte embedding with the given outer face on an equilateral triangle; (n, 2) positions."""
+    n = connectivity.n_vertices
+    e = connectivity.edges
+    W = sp.coo_matrix((np.r_[weights, weights], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                      shape=(n, n)).tocsr()
+    L = sp.diags(np.asarray(W.sum(1)).ravel()) - W
+    outer = connectivity.faces[outer_face]
+    angles = np.pi / 2 + 2 * np.pi * np.arange(3) / 3
+    P = np.zeros((n, 2))
+    # The outer face is clockwise in the plane so the others come out counter-clockwise.
+    P[outer] = np.c_[np.cos(angles), np.sin(angles)][::-1]
+    inner = np.setdiff1d(np.arange(n), outer)
+    L = L.tocsr()
+    rhs = -L[inner][:, outer] @ P[outer]
+    P[inner] = spla.splu(L[inner][:, inner].tocsc()).solve(rhs)
+    return P
+
+
+def convex_lift(connectivity, planar, weights, outer_face):
+    """Maxwell-Cremona heights for a planar equilibrium framework, (n,) array.
+
+    Interior vertices are in equilibrium by construction; the outer edges get the stresses that
+    balance the three outer vertices.
+    """
+    F = connectivity.faces
+    e = connectivity.edges
+    n, t = connectivity.n_vertices, connectivity.n_faces
+    w = weights.astype(float).copy()
+    outer = F[outer_face]
+    outer_edge = {tuple(e[k]): k for k in np.flatnonzero(np.isin(e, outer).all(1))}
+    w[list(outer_edge.values())] = 0.0
+    # Net force on each outer vertex from its other edges; balance it along the two outer edges.
+    force = np.zeros((n, 2))
+    for s, d in ((0, 1), (1, 0)):
+        np.add.at(force, e[:, s], w[:, None] * (planar[e[:, d]] - planar[e[:, s]]))
+    a, b, c = outer
+    for v, (p, q) in ((a, (b, c)), (b, (c, a)), (c, (a, b))):
+        M = np.c_[planar[p] - planar[v], planar[q] - planar[v]]
+        wp, wq = np.linalg.solve(M, -force[v])
+        # Each outer edge is solved twice (from both ends); equilibrium makes them agree, so average.
+        for other, value in ((p, wp), (q, wq)):
+            k = outer_edge[tuple(sorted((v, other)))]
+            w[k] += value / 2
+    # Face gradients g_f: across edge i->j with face f on its left and g on its right,
+    # g_f - g_g = w_ij * rot90(p_j - p_i). Propagate breadth-first from the outer face (g = 0).
+    half_edge_face = np.repeat(np.arange(t), 3)
+    tails = np.roll(F, -1, axis=1).ravel()        # directed edge opposite corner j: j+1 -> j+2
+    heads = np.roll(F, -2, axis=1).ravel()
+    c_idx = connectivity.edge_corner_indices()
+    # For each edge, the face on the left of (tail -> head) of its first corner is that corner's face.
+    left = half_edge_face[c_idx[:, 0]]
+    right = half_edge_face[c_idx[:, 1]]
+    jump = w[:, None] * _rot90(planar[heads[c_idx[:, 0]]] - planar[tails[c_idx[:, 0]]])
+    offset_jump = -np.einsum("ij,ij->i", jump, planar[tails[c_idx[:, 0]]])
+    gradient = np.full((t, 2), np.nan)
+    offset = np.full(t, np.nan)
+    gradient[outer_face], offset[outer_face] = 0.0, 0.0
+    known = np.zeros(t, bool)
+    known[outer_face] = True
+    while not known.all():
+        forward = known[right] & ~known[left]     # right known -> left = right + jump
+        backward = known[left] & ~known[right]
+        if not (forward.any() or backward.any()):
+            raise RuntimeError("face graph is not connected")
+        k = np.flatnonzero(forward)
+        f, first = np.unique(left[k], return_index=True)
+        gradient[f] = gradient[right[k[first]]] + jump[k[first]]
+        offset[f] = offset[right[k[first]]] + offset_jump[k[first]]
+        known[f] = True
+        k = np.flatnonzero(backward & ~known[right])
+        f, first = np.unique(right[k], return_index=True)
+        gradient[f] = gradient[left[k[first]]] - jump[k[first]]
+        offset[f] = offset[left[k[first]]] - offset_jump[k[first]]
+        known[f] = True
+    heights = np.zeros(n)
+    heights[F.ravel()] = (np.einsum("tj,tkj->tk", gradient, planar[F]) + offset[:, None]).ravel()
+    return heights
+
+
+def convex_embedding(connectivity, vertices=None, weights="cotan", outer_face=None):
+    """Valid spherical positions for the mesh's connectivity (see the module docstring).
+
+    Parameters
+    ----------
+    connectivity : Connectivity
+    vertices : (n, 3) array, optional
+        3D positions, used only for the cotangent weights (which follow the shape better than
+        uniform ones and so shrink limbs less).
+    weights : {"cotan", "uniform"}
+    outer_face : int, optional
+        The triangle removed for the planar embedding; default the one of largest 3D area.
+
+    Returns
+    -------
+    (n, 3) array of unit vectors.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import cylinder
+    >>> from sphere_nlp.connectivity import build_connectivity
+    >>> from sphere_nlp.certify import certify
+    >>> V, F = cylinder()
+    >>> certify(convex_embedding(build_connectivity(F, len(V)), V), F).valid
+    True
+    """
+    w = edge_weights(vertices, connectivity, weights)
+    if outer_face is None:
+        if vertices is not None:
+            from .targets import triangle_areas_3d
+            outer_face = int(np.argmax(triangle_areas_3d(vertices, connectivity.faces)))
+        else:
+            outer_face = 0
+    planar = planar_tutte(connectivity, w, outer_face)
+    heights = convex_lift(connectivity, planar, w, outer_face)
+    P = np.c_[planar, heights]
+    # Make the lift's scale comparable to the plane's, then project from inside the polytope.
+    span = np.ptp(heights)
+    if span > 0:
+        P[:, 2] *= 1.0 / span
+    centre = P.mean(axis=0)
+    X = P - centre
+    X /= np.linalg.norm(X, axis=1, keepdims=True)
+    from .certify import signed_solid_angles
+    if np.sum(signed_solid_angles(X, connectivity.faces)) < 0:
+        X[:, 0] = -X[:, 0]                      # the lift came out mirrored
+    return X
