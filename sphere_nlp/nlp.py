@@ -109,6 +109,8 @@ class AngleNLP:
         x, y, z), which makes the KKT matrix singular; leaving out (7) at three vertices whose
         positions are linearly independent removes the redundancy, and those three sums then hold
         automatically. :func:`sphere_nlp.solve.solve_angles` checks all of (7) afterwards.
+    angle_margin : float
+        log-chord only: with ``inequalities=True`` every u = alpha - e/2 is kept >= this (radians).
 
     Notes
     -----
@@ -117,10 +119,12 @@ class AngleNLP:
     because CasADi derives the sparse Hessian then.
     """
 
-    def __init__(self, connectivity, targets, formulation=DEFAULT_FORMULATION, dropped_vertices=()):
+    def __init__(self, connectivity, targets, formulation=DEFAULT_FORMULATION, dropped_vertices=(),
+                 angle_margin=1e-4):
         if formulation not in FORMULATIONS:
             raise ValueError("unknown formulation %r; choose one of %s" % (formulation, FORMULATIONS))
         self.formulation = formulation
+        self.angle_margin = float(angle_margin)
         self.connectivity = connectivity
         t = connectivity.n_faces
         self.n_faces = t
@@ -222,8 +226,12 @@ class AngleNLP:
     # -- solving ---------------------------------------------------------------------------------
     def _bounds(self, inequalities):
         lbx = np.full(self.n_variables, -np.inf)
-        if inequalities:
-            lbx[:] = 0.0          # (3) alpha > 0, (4) e > 0 (faithful), or u > 0, e > 0 (log-chord)
+        if inequalities and self.formulation == "log-chord":
+            # u > 0 holds anyway; the bound keeps every u = alpha - e/2 at least a margin from 0,
+            # because on some meshes the infimum of the objective is at a degenerate triangle.
+            lbx[:3 * self.n_faces] = np.log(self.angle_margin)
+        elif inequalities:
+            lbx[:] = 0.0          # (3) alpha > 0 and, for the faithful form, (4) e > 0
         ubx = np.full(self.n_variables, np.inf)
         lbg = np.zeros(self.n_equalities + (self.n_inequalities if inequalities else 0))
         ubg = np.zeros_like(lbg)

@@ -232,11 +232,26 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     if formulation == "log-chord":
         dropped = independent_vertices(start_positions) if start == "embedding" else []
         nlp = AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped)
-        run = nlp.solve(nlp.pack(init_angles, init_excess), options=options,
-                        progress=stage_progress("log-chord"))
-        stages.append(dict(name="log-chord", **{k: run[k] for k in
-                                                 ("status", "iterations", "objective", "time_s",
-                                                  "build_s")}))
+        x0 = nlp.pack(init_angles, init_excess)
+        run = nlp.solve(x0, options=options, progress=stage_progress("equality"))
+        stages.append(dict(name="equality", **{k: run[k] for k in
+                                                ("status", "iterations", "objective", "time_s",
+                                                 "build_s")}))
+        u_min = np.min(run["x"][:3 * connectivity.n_faces])
+        if not run["success"] or not u_min > np.log(nlp.angle_margin):
+            # As the paper adds its inequalities only when needed: the optimum lies at (or the
+            # solver ran into) a degenerate triangle, so solve again with u >= angle_margin, from
+            # the equality result if it is usable, else from the feasible start.
+            lower = np.log(nlp.angle_margin)
+            restart = run["x"] if np.isfinite(run["x"]).all() else x0
+            restart = restart.copy()
+            restart[:3 * connectivity.n_faces] = np.maximum(restart[:3 * connectivity.n_faces],
+                                                            lower + 1e-3)
+            run = nlp.solve(restart, inequalities=True, options=options,
+                            progress=stage_progress("margin"))
+            stages.append(dict(name="margin", **{k: run[k] for k in
+                                                  ("status", "iterations", "objective", "time_s",
+                                                   "build_s")}))
         angles, excess = nlp.unpack(run["x"])
         return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess)
 

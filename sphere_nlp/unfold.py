@@ -73,6 +73,25 @@ def _place_third(pu, pv, chord_uw, chord_vw):
     return w / np.linalg.norm(w, axis=1, keepdims=True)
 
 
+def _place_by_angle(pu, pv, angle_at_u, chord_uw):
+    """Unit vectors w at chord ``chord_uw`` from pu, at spherical angle ``angle_at_u`` from the arc
+    u -> v, counter-clockwise seen from outside (vectorised).
+
+    Works with differences from pu, never with dot products close to 1, so tiny triangles keep
+    their relative accuracy (intersecting spheres loses it: 1 - (pu.pv)^2 cancels).
+    """
+    d = pv - pu
+    toward_v = d - np.einsum("ij,ij->i", d, pu)[:, None] * pu       # tangent at pu toward v
+    toward_v /= np.linalg.norm(toward_v, axis=1, keepdims=True)
+    left = np.cross(pu, toward_v)
+    half = np.clip(chord_uw / 2, 0.0, 1.0)
+    arc = 2 * np.arcsin(half)
+    direction = np.cos(angle_at_u)[:, None] * toward_v + np.sin(angle_at_u)[:, None] * left
+    # w = cos(arc) pu + sin(arc) direction, written as pu + (small terms) for accuracy.
+    w = pu + np.sin(arc)[:, None] * direction - (2 * half ** 2)[:, None] * pu
+    return w / np.linalg.norm(w, axis=1, keepdims=True)
+
+
 def unfold(connectivity, angles, seed_face=None, excess=None):
     """Vertex positions on the unit sphere that realise the solved angles.
 
@@ -138,9 +157,11 @@ def unfold(connectivity, angles, seed_face=None, excess=None):
         w = Ff[rows, missing]
         u = Ff[rows, (missing + 1) % 3]                  # (u, v, w) is in the face's cyclic order
         v = Ff[rows, (missing + 2) % 3]
+        angle_at_u = np.asarray(angles, float)[frontier, (missing + 1) % 3]
         w, first = np.unique(w, return_index=True)      # one triangle per new vertex
-        u, v = u[first], v[first]
-        positions[w] = _place_third(positions[u], positions[v], chord(u, w), chord(v, w))
+        u, v, angle_at_u = u[first], v[first], angle_at_u[first]
+        # Seen from outside, w lies counter-clockwise of the arc u -> v by the angle at u.
+        positions[w] = _place_by_angle(positions[u], positions[v], angle_at_u, chord(u, w))
         placed[w] = True
         levels += 1
     return positions, {"seed_face": seed, "levels": levels, "edge_chord_mismatch": mismatch}

@@ -135,3 +135,23 @@ def test_shipped_cylinder_is_regenerated_by_code(tmp_path):
 
     write_models(tmp_path)
     assert (tmp_path / "cylinder.off").read_text() == (MODELS / "cylinder.off").read_text()
+
+
+def test_tiny_triangles_keep_their_angles():
+    # A valid triangulation with triangles of area ~1e-14: the unfold and the angle measurement
+    # must not lose their digits (dot products near 1 would).
+    from sphere_nlp.unfold import unfold
+
+    V, F = icosphere(2)
+    V = V.copy()
+    k = F[0]
+    centre = V[k].mean(0)
+    V[k] = centre + 1e-7 * (V[k] - centre)          # shrink one triangle to ~1e-7 across
+    V /= np.linalg.norm(V, axis=1, keepdims=True)
+    c = build_connectivity(F, len(V))
+    angles = spherical_angles(V, F)
+    excess = signed_solid_angles(V, F)
+    assert excess.min() < 1e-12 and certify(V, F).valid
+    X, info = unfold(c, angles, excess=excess)
+    assert certify(X, F).valid
+    assert np.abs(spherical_angles(X, F) - angles).max() < 1e-6
