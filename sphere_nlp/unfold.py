@@ -1,17 +1,32 @@
 """Unfold solved spherical angles into vertex positions on the unit sphere (section 5 of the paper).
 
-Arc lengths come from the angles of each triangle; the first triangle is placed directly, then every
-other vertex is placed from a triangle whose other two vertices are already placed, at the
-intersection of the unit sphere with two spheres whose radii are the chord lengths.
+Two stages:
 
-The walk is breadth-first from a central triangle (one of least eccentricity in the triangle graph),
-level by level, so paths from the seed are as short as the mesh allows and each level is placed in one
-vectorised step.
+1. **Walk.** Breadth-first from a central triangle (one of least eccentricity in the triangle graph),
+   level by level, so paths from the seed are as short as the mesh allows and each level is placed
+   in one vectorised step. A new vertex ``w`` of a triangle ``(w, u, v)`` whose ``u`` and ``v`` are
+   placed is put where the great circles leaving ``u`` and ``v`` at the triangle's solved angles meet
+   (angle-side-angle). This uses angles only: chord lengths derived from angles are ill-conditioned
+   for small triangles, whose excess (the only scale information in their angles) is a tiny
+   difference of large numbers. When several triangles of a level reach the same vertex, the
+   placements are averaged with weights ``sin^2`` of the angle at ``w`` (the paper's averaging idea;
+   that sine is the conditioning of the intersection), or only the best one is used.
+2. **Correction.** The walk accumulates error with depth (the paper's "numerical error, which
+   increases with the number of triangles"). Damped Gauss-Newton on all corner-angle residuals
+   ``angle(positions) - solved angle`` removes it: each vertex moves in its tangent plane and is
+   retracted onto the sphere by normalising; the normal equations are sparse (2 unknowns per vertex,
+   one 6x6 block per triangle) and solved directly. A tiny Levenberg-Marquardt damping fixes the 3
+   rotational degrees of freedom (the gradient has no component along them).
 """
+
+import time
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
+from scipy.sparse.linalg import splu
+
+from .certify import spherical_angles
 
 
 def half_chords_squared(angles):
@@ -20,6 +35,12 @@ def half_chords_squared(angles):
     Uses the half-angle form of the spherical cosine rule,
     sin^2(a/2) = sin(E/2) cos(S - A) / (sin B sin C), with E the excess and S = (pi + E) / 2, which stays
     accurate for short arcs where cos a is close to 1 and the plain cosine rule loses digits.
+
+    Examples
+    --------
+    >>> s2 = half_chords_squared(np.full((1, 3), np.pi / 2))   # octant: every arc is pi / 2
+    >>> bool(np.allclose(s2, 0.5))
+    True
     """
     A = np.asarray(angles, float)
     B, C = np.roll(A, -1, axis=1), np.roll(A, -2, axis=1)
@@ -30,7 +51,18 @@ def half_chords_squared(angles):
 def edge_chords(connectivity, angles):
     """Chord length 2 sin(a/2) of every edge, averaged over its two triangles, (m,).
 
-    Also returns the largest relative disagreement between the two triangles of an edge.
+    Also returns the largest relative disagreement between the two triangles of an edge. For small
+    triangles this disagreement mostly measures how poorly angles determine scale, not an error in
+    the angles.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> from sphere_nlp.connectivity import build_connectivity
+    >>> V, F = octahedron()
+    >>> chords, mismatch = edge_chords(build_connectivity(F, 6), np.full((8, 3), np.pi / 2))
+    >>> bool(np.allclose(chords, np.sqrt(2))), mismatch < 1e-15
+    (True, True)
     """
     s2 = np.clip(half_chords_squared(angles), 0.0, 1.0).ravel()
     chord = 2 * np.sqrt(s2)
@@ -41,7 +73,11 @@ def edge_chords(connectivity, angles):
 
 
 def central_face(connectivity):
-    """A triangle of (approximately) least eccentricity in the triangle adjacency graph."""
+    """A triangle of (approximately) least eccentricity in the triangle adjacency graph.
+
+    Two sweeps find a pair of far-apart triangles; the face minimising the larger distance to them
+    is near the graph's centre, so the walk from it is about half the diameter deep.
+    """
     t = connectivity.n_faces
     f1, f2 = connectivity.edge_faces.T
     graph = sp.coo_matrix((np.ones(len(f1)), (f1, f2)), shape=(t, t)).tocsr()
@@ -51,6 +87,10 @@ def central_face(connectivity):
     far2 = int(np.argmax(d1))
     d2 = shortest_path(graph, directed=False, unweighted=True, indices=far2)
     return int(np.argmin(np.maximum(d1, d2)))
+
+
+def _unit(x):
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
 
 
 def _place_third(pu, pv, chord_uw, chord_vw):
@@ -65,60 +105,76 @@ def _place_third(pu, pv, chord_uw, chord_vw):
     in_plane = a * a + b * b + 2 * a * b * g
     c = np.sqrt(np.maximum(1 - in_plane, 0) / denom)
     w = a[:, None] * pu + b[:, None] * pv + c[:, None] * normal
-    return w / np.linalg.norm(w, axis=1, keepdims=True)
+    return _unit(w)
 
 
-def unfold(connectivity, angles, seed_face=None):
-    """Vertex positions on the unit sphere that realise the solved angles.
+def _seed_positions(angles_seed, chords_seed):
+    """Positions of the first triangle: corner 0 at the north pole, corner 1 on the +x meridian.
+
+    ``chords_seed[j]`` is the chord opposite corner j.
+    """
+    arc = 2 * np.arcsin(np.minimum(np.asarray(chords_seed) / 2, 1.0))
+    ab, ac = arc[2], arc[1]
+    A = angles_seed[0]
+    return np.array([[0.0, 0.0, 1.0],
+                     [np.sin(ab), 0.0, np.cos(ab)],
+                     [np.sin(ac) * np.cos(A), np.sin(ac) * np.sin(A), np.cos(ac)]])
+
+
+def corner_edges(connectivity):
+    """Edge index opposite every flat corner 3 * i + j, (3t,)."""
+    corners = connectivity.edge_corner_indices()
+    out = np.empty(3 * connectivity.n_faces, np.int64)
+    out[corners[:, 0]] = out[corners[:, 1]] = np.arange(connectivity.n_edges)
+    return out
+
+
+# A vertex is placed from a triangle only when sin(angle at the vertex) is at least this, unless no
+# vertex of the level qualifies: the chord-sphere intersection loses ~1/sin of that angle in accuracy.
+WELL_CONDITIONED_SIN = 0.2
+
+
+def walk(connectivity, angles, seed_face, chords=None, average=True):
+    """Breadth-first placement of every vertex from two placed neighbours and two chord lengths.
 
     Parameters
     ----------
     connectivity : Connectivity
     angles : (t, 3) array
-        Solved spherical angles (they must satisfy (6)-(8)).
-    seed_face : int, optional
-        First triangle to place; default :func:`central_face`.
+    seed_face : int
+    chords : (m,) array, optional
+        Chord length of every edge; default :func:`edge_chords` of the angles.
+    average : bool
+        Average the placements of a vertex from all triangles of its level that reach it, weighted
+        by sin^2 of the angle at the vertex (the paper's averaging of unfolding sequences); otherwise
+        use the best-conditioned one.
 
     Returns
     -------
     positions : (n, 3) array of unit vectors
-    info : dict
-        ``seed_face``, ``levels`` (breadth-first levels walked), ``edge_chord_mismatch`` (largest
-        relative disagreement of an edge's chord between its two triangles).
+    levels : int
+        Number of breadth-first levels (the depth of the walk).
 
     Examples
     --------
     >>> from sphere_nlp.shapes import octahedron
     >>> from sphere_nlp.connectivity import build_connectivity
     >>> V, F = octahedron()
-    >>> X, info = unfold(build_connectivity(F, 6), np.full((8, 3), np.pi / 2))
-    >>> bool(np.allclose(np.abs(X).max(1), 1))
-    True
+    >>> X, levels = walk(build_connectivity(F, 6), np.full((8, 3), np.pi / 2), 0)
+    >>> bool(np.allclose(np.abs(X).max(1), 1)), levels
+    (True, 1)
     """
     F = connectivity.faces
     n = connectivity.n_vertices
-    chords, mismatch = edge_chords(connectivity, angles)
-    # Lookup of chord by vertex pair through a sparse matrix (symmetric).
-    e = connectivity.edges
-    chord_of = sp.coo_matrix((np.r_[chords, chords], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                             shape=(n, n)).tocsr()
-
-    def chord(u, v):
-        return np.asarray(chord_of[u, v]).ravel()
-
-    seed = central_face(connectivity) if seed_face is None else int(seed_face)
-    a, b, c = F[seed]
-    A = np.asarray(angles, float)[seed]
+    A = np.asarray(angles, float)
+    if chords is None:
+        chords = edge_chords(connectivity, A)[0]
+    chord_at = chords[corner_edges(connectivity)].reshape(-1, 3)   # chord opposite each corner
+    sin_at = np.sin(A)
     positions = np.zeros((n, 3))
     placed = np.zeros(n, bool)
-    # First triangle: a at the north pole, b along the meridian through +x, c by the angle at a.
-    ab = 2 * np.arcsin(min(chord([a], [b])[0] / 2, 1.0))
-    ac = 2 * np.arcsin(min(chord([a], [c])[0] / 2, 1.0))
-    positions[a] = [0, 0, 1]
-    positions[b] = [np.sin(ab), 0, np.cos(ab)]
-    positions[c] = [np.sin(ac) * np.cos(A[0]), np.sin(ac) * np.sin(A[0]), np.cos(ac)]
-    placed[[a, b, c]] = True
-
+    positions[F[seed_face]] = _seed_positions(A[seed_face], chord_at[seed_face])
+    placed[F[seed_face]] = True
     levels = 0
     while not placed.all():
         count = placed[F].sum(1)
@@ -128,12 +184,253 @@ def unfold(connectivity, angles, seed_face=None):
         Ff = F[frontier]
         missing = np.argmin(placed[Ff], axis=1)          # local index of the unplaced vertex
         rows = np.arange(len(frontier))
-        w = Ff[rows, missing]
-        u = Ff[rows, (missing + 1) % 3]                  # (u, v, w) is in the face's cyclic order
-        v = Ff[rows, (missing + 2) % 3]
-        w, first = np.unique(w, return_index=True)      # one triangle per new vertex
-        u, v = u[first], v[first]
-        positions[w] = _place_third(positions[u], positions[v], chord(u, w), chord(v, w))
-        placed[w] = True
+        next_, prev = (missing + 1) % 3, (missing + 2) % 3
+        w, u, v = Ff[rows, missing], Ff[rows, next_], Ff[rows, prev]   # (w, u, v) in cyclic order
+        sin_w = sin_at[frontier, missing]
+        best = np.zeros(n)
+        np.maximum.at(best, w, sin_w)
+        ok = best[w] >= WELL_CONDITIONED_SIN
+        if ok.any():                                    # defer ill-conditioned vertices to a later level
+            frontier, rows, w, u, v, next_, prev, sin_w = (x[ok] for x in (frontier, rows, w, u, v, next_,
+                                                                            prev, sin_w))
+        guess = _place_third(positions[u], positions[v], chord_at[frontier, prev], chord_at[frontier, next_])
+        new = np.unique(w)
+        if average:
+            total = np.zeros((n, 3))
+            np.add.at(total, w, (sin_w ** 2)[:, None] * guess)
+            positions[new] = _unit(total[new])
+        else:
+            order = np.lexsort((-sin_w, w))               # best-conditioned triangle first per vertex
+            first = order[np.r_[True, w[order][1:] != w[order][:-1]]]
+            positions[w[first]] = guess[first]
+        placed[new] = True
         levels += 1
-    return positions, {"seed_face": seed, "levels": levels, "edge_chord_mismatch": mismatch}
+    return positions, levels
+
+
+def tangent_bases(positions):
+    """Two orthonormal tangent vectors at every unit vector, (n, 3, 2).
+
+    Examples
+    --------
+    >>> X = np.array([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]])
+    >>> T = tangent_bases(X)
+    >>> bool(np.allclose(np.einsum("ni,nid->nd", X, T), 0))
+    True
+    """
+    helper = np.zeros_like(positions)
+    helper[np.arange(len(positions)), np.argmin(np.abs(positions), axis=1)] = 1.0
+    e1 = _unit(np.cross(positions, helper))
+    e2 = np.cross(positions, e1)
+    return np.stack([e1, e2], axis=2)
+
+
+def angle_gradients(positions, faces):
+    """Gradient of every corner angle with respect to the three vertices of its triangle, (t, 3, 3, 3).
+
+    ``G[i, j, k]`` is the gradient of the angle at corner ``j`` of face ``i`` with respect to the
+    position of the vertex at corner ``k``, tangent to the sphere there. With a the corner's vertex and
+    b, c the next ones, the angle is the azimuth of c minus that of b around a, so
+    d/db = -(a x b)/|a x b|^2, d/dc = (a x c)/|a x c|^2, and d/da follows from invariance under
+    rotations: (a.b)(a x b)/|a x b|^2 - (a.c)(a x c)/|a x c|^2.
+    """
+    P = positions[faces]
+    a, b, c = P, np.roll(P, -1, axis=1), np.roll(P, -2, axis=1)
+    ab, ac = np.cross(a, b), np.cross(a, c)
+    ab2 = np.einsum("tjk,tjk->tj", ab, ab)[..., None]
+    ac2 = np.einsum("tjk,tjk->tj", ac, ac)[..., None]
+    g_b = -ab / ab2
+    g_c = ac / ac2
+    g_a = (np.einsum("tjk,tjk->tj", a, b)[..., None] * ab / ab2
+           - np.einsum("tjk,tjk->tj", a, c)[..., None] * ac / ac2)
+    G = np.empty(P.shape[:2] + (3, 3))
+    j = np.arange(3)
+    G[:, j, j] = g_a
+    G[:, j, (j + 1) % 3] = g_b
+    G[:, j, (j + 2) % 3] = g_c
+    return G
+
+
+def _angle_jacobian(positions, faces, bases):
+    """Jacobian of the corner angles in tangent-plane coordinates: one (3, 6) block per face.
+
+    Returns the blocks (t, 3, 6) and the unknown index of each of their columns (t, 6); vertex p has
+    unknowns 2p and 2p + 1, its coordinates along ``bases[p]``.
+    """
+    G = angle_gradients(positions, faces)                          # (t, corner, slot, xyz)
+    J = np.einsum("tjkx,tkxd->tjkd", G, bases[faces]).reshape(len(faces), 3, 6)
+    return J, (2 * faces[:, :, None] + np.arange(2)).reshape(len(faces), 6)
+
+
+def _gradient(J, unknowns, residual, n):
+    """J^T r, (2n,)."""
+    return np.bincount(unknowns.ravel(), weights=np.einsum("tri,tr->ti", J, residual).ravel(),
+                       minlength=2 * n)
+
+
+def _factorize_normal_matrix(J, unknowns, n, damping):
+    """Sparse LU of J^T J + damping * diag(J^T J), assembled from the 6x6 blocks of the faces.
+
+    The matrix is symmetric positive definite, so SuperLU runs in symmetric mode on a minimum-degree
+    ordering of A + A^T without row pivoting. A tiny absolute term keeps the three rotations (the
+    null space) nonsingular; the gradient has no component along them, so they do not move.
+    """
+    blocks = np.einsum("tri,trj->tij", J, J)
+    rows = np.broadcast_to(unknowns[:, :, None], blocks.shape).ravel()
+    cols = np.broadcast_to(unknowns[:, None, :], blocks.shape).ravel()
+    H = sp.csc_matrix((blocks.ravel(), (rows, cols)), shape=(2 * n, 2 * n))
+    diag = H.diagonal()
+    H = H + sp.diags(damping * diag + 1e-12 * diag.mean(), format="csc")
+    return splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                 options=dict(SymmetricMode=True))
+
+
+def angle_errors(positions, faces, angles):
+    """Max and RMS |angle measured from positions - solved angle| (radians)."""
+    err = spherical_angles(positions, faces) - angles
+    err = np.where(np.isfinite(err), err, np.inf)
+    return float(np.abs(err).max()), float(np.sqrt(np.mean(err ** 2)))
+
+
+def chord_mismatch(positions, edges, chords):
+    """Max relative |chord from positions - chord from the solved angles| over the edges."""
+    measured = np.linalg.norm(positions[edges[:, 0]] - positions[edges[:, 1]], axis=1)
+    return float(np.max(np.abs(measured - chords) / chords))
+
+
+def correct(connectivity, angles, positions, max_iterations=20, tolerance=1e-13):
+    """Gauss-Newton on all corner-angle residuals, positions kept on the unit sphere.
+
+    Each vertex moves in its tangent plane and is retracted by normalising. The normal matrix is
+    factorised once and reused while steps keep shrinking the residual fast (a simplified
+    Gauss-Newton; on a consistent problem the first two or three steps already gain several digits
+    each); it is refactorised at the current positions when progress slows, with more
+    Levenberg-Marquardt damping when a step fails. It stops when the largest residual is below
+    ``tolerance`` or a freshly linearised step no longer halves the sum of squares, which is where
+    rounding in the angles themselves (largest on tiny and sliver triangles) sets the floor.
+
+    Parameters
+    ----------
+    connectivity : Connectivity
+    angles : (t, 3) array
+        Solved angles to reproduce.
+    positions : (n, 3) array
+        Starting positions (the walk's).
+    max_iterations : int
+        Most steps (each one residual, one gradient, one back-substitution).
+    tolerance : float
+        Largest angle residual (radians) that counts as converged.
+
+    Returns
+    -------
+    positions : (n, 3) array of unit vectors
+    stats : dict
+        ``iterations``, ``factorizations``.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import icosphere
+    >>> from sphere_nlp.connectivity import build_connectivity
+    >>> V, F = icosphere(2)
+    >>> rng = np.random.default_rng(0)
+    >>> nudged = V + 1e-4 * rng.normal(size=V.shape)
+    >>> X, stats = correct(build_connectivity(F, len(V)), spherical_angles(V, F), nudged)
+    >>> float(np.abs(spherical_angles(X, F) - spherical_angles(V, F)).max()) < 1e-12
+    True
+    """
+    F = connectivity.faces
+    n = connectivity.n_vertices
+    A = np.asarray(angles, float)
+    X = _unit(np.asarray(positions, float))
+    r = spherical_angles(X, F) - A
+    cost = float(np.sum(r * r))
+    damping = 1e-10
+    lu = bases = None
+    fresh = False                     # is the factorisation from the current positions?
+    iterations = factorizations = 0
+    while iterations < max_iterations and np.abs(r).max() > tolerance:
+        if lu is None:
+            bases = tangent_bases(X)
+            J, unknowns = _angle_jacobian(X, F, bases)
+            lu = _factorize_normal_matrix(J, unknowns, n, damping)
+            factorizations += 1
+            fresh = True
+        else:
+            J, unknowns = _angle_jacobian(X, F, bases)
+        step = -lu.solve(_gradient(J, unknowns, r, n))
+        trial = _unit(X + np.einsum("nxd,nd->nx", bases, step.reshape(n, 2)))
+        r_trial = spherical_angles(trial, F) - A
+        cost_trial = float(np.sum(r_trial * r_trial))
+        iterations += 1
+        if cost_trial < cost:
+            X, r, cost_before, cost = trial, r_trial, cost, cost_trial
+            if cost > 0.5 * cost_before:
+                if fresh:
+                    break             # at the rounding floor
+                lu = None             # the reused linearisation has gone stale
+            fresh = False
+            continue
+        if fresh:
+            if cost_trial < 4 * cost or damping > 1e4:
+                break                 # a rounding-level wobble, or no step helps: stop here
+            damping *= 100            # the linear model is not trusted this far: shorten the step
+        lu = None
+    return X, {"iterations": iterations, "factorizations": factorizations}
+
+
+def unfold(connectivity, angles, seed_face=None, average=True, correction=True):
+    """Vertex positions on the unit sphere that realise the solved angles.
+
+    Parameters
+    ----------
+    connectivity : Connectivity
+    angles : (t, 3) array
+        Solved spherical angles (they must satisfy (6)-(8)).
+    seed_face : int, optional
+        First triangle to place; default :func:`central_face`.
+    average : bool
+        Average the walk's placements of a vertex over the triangles that reach it (default), or use
+        the best-conditioned triangle only.
+    correction : bool
+        Run the Gauss-Newton correction after the walk (default).
+
+    Returns
+    -------
+    positions : (n, 3) array of unit vectors
+    info : dict
+        ``seed_face``, ``levels`` (breadth-first levels walked), ``edge_chord_mismatch`` (largest
+        relative disagreement of an edge's chord between its two triangles), and for the walk and the
+        corrected positions: ``walk_*`` / ``corrected_*`` with ``max_angle_error``,
+        ``rms_angle_error`` (radians, against the solved angles) and ``max_chord_mismatch`` (relative,
+        against the chords of the solved angles); ``correction_iterations``, ``walk_s``,
+        ``correction_s``.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import icosphere
+    >>> from sphere_nlp.connectivity import build_connectivity
+    >>> from sphere_nlp.certify import spherical_angles
+    >>> V, F = icosphere(2)
+    >>> X, info = unfold(build_connectivity(F, len(V)), spherical_angles(V, F))
+    >>> info["corrected_max_angle_error"] < 1e-12
+    True
+    """
+    F = connectivity.faces
+    A = np.asarray(angles, float)
+    chords, mismatch = edge_chords(connectivity, A)
+    seed = central_face(connectivity) if seed_face is None else int(seed_face)
+    clock = time.perf_counter()
+    positions, levels = walk(connectivity, A, seed, chords=chords, average=average)
+    info = {"seed_face": seed, "levels": levels, "edge_chord_mismatch": mismatch,
+            "walk_s": time.perf_counter() - clock}
+    info["walk_max_angle_error"], info["walk_rms_angle_error"] = angle_errors(positions, F, A)
+    info["walk_max_chord_mismatch"] = chord_mismatch(positions, connectivity.edges, chords)
+    if correction:
+        clock = time.perf_counter()
+        positions, stats = correct(connectivity, A, positions)
+        info["correction_s"] = time.perf_counter() - clock
+        info["correction_iterations"] = stats["iterations"]
+        info["correction_factorizations"] = stats["factorizations"]
+        info["corrected_max_angle_error"], info["corrected_rms_angle_error"] = angle_errors(positions, F, A)
+        info["corrected_max_chord_mismatch"] = chord_mismatch(positions, connectivity.edges, chords)
+    return positions, info
