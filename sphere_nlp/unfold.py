@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import shortest_path
+from scipy.sparse.csgraph import reverse_cuthill_mckee, shortest_path
 from scipy.sparse.linalg import splu
 
 from .certify import spherical_angles
@@ -64,12 +64,21 @@ def edge_chords(connectivity, angles):
     >>> bool(np.allclose(chords, np.sqrt(2))), mismatch < 1e-15
     (True, True)
     """
-    s2 = np.clip(half_chords_squared(angles), 0.0, 1.0).ravel()
-    chord = 2 * np.sqrt(s2)
+    c1, c2 = _chord_pairs(connectivity, angles)
+    return 0.5 * (c1 + c2), float(_edge_mismatch(connectivity, angles).max(initial=0.0))
+
+
+def _chord_pairs(connectivity, angles):
+    """Chord of every edge as computed from each of its two triangles, two (m,) arrays."""
+    chord = 2 * np.sqrt(np.clip(half_chords_squared(angles), 0.0, 1.0).ravel())
     c = connectivity.edge_corner_indices()
-    c1, c2 = chord[c[:, 0]], chord[c[:, 1]]
-    mismatch = np.abs(c1 - c2) / np.maximum(np.maximum(c1, c2), 1e-300)
-    return 0.5 * (c1 + c2), float(mismatch.max(initial=0.0))
+    return chord[c[:, 0]], chord[c[:, 1]]
+
+
+def _edge_mismatch(connectivity, angles):
+    """Relative disagreement of every edge's chord between its two triangles, (m,)."""
+    c1, c2 = _chord_pairs(connectivity, angles)
+    return np.abs(c1 - c2) / np.maximum(np.maximum(c1, c2), 1e-300)
 
 
 def central_face(connectivity):
@@ -133,9 +142,40 @@ def corner_edges(connectivity):
 # vertex of the level qualifies: the chord-sphere intersection loses ~1/sin of that angle in accuracy.
 WELL_CONDITIONED_SIN = 0.2
 
+# An edge whose chord, computed from each of its two triangles, disagrees by more than this (relative)
+# has an unreliable length: its triangles are too small for their excess to carry the scale.
+RELIABLE_CHORD_MISMATCH = 1e-6
 
-def walk(connectivity, angles, seed_face, chords=None, average=True):
+
+def _sine_law_chords(chord_uv, sin_u, sin_v, sin_w):
+    """Chords uw and vw of a triangle (w, u, v) from its side uv and the sines of its angles.
+
+    Spherical sine law sin(uw) / sin V = sin(vw) / sin U = sin(uv) / sin W, taking the arcs below
+    pi / 2: used for small triangles only, where it holds the ratios the angles fix well.
+    """
+    sin_uv = np.sin(2 * np.arcsin(np.minimum(chord_uv / 2, 1.0)))
+    arc_uw = np.arcsin(np.minimum(sin_uv * sin_v / sin_w, 1.0))
+    arc_vw = np.arcsin(np.minimum(sin_uv * sin_u / sin_w, 1.0))
+    return 2 * np.sin(arc_uw / 2), 2 * np.sin(arc_vw / 2)
+
+
+# When a level completes a triangle whose angles are off by more than this (radians), the walk stops
+# to run the correction on everything completed so far, then goes on from corrected positions: drift
+# compounds along the walk on meshes of skinny triangles, and Gauss-Newton needs a close start.
+WALK_REPAIR_ERROR = 1e-4
+
+# ... but only after the placed region has grown by this factor since the last repair, so that the
+# repairs cost a bounded multiple of one final correction.
+WALK_REPAIR_GROWTH = 1.5
+
+
+def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True):
     """Breadth-first placement of every vertex from two placed neighbours and two chord lengths.
+
+    Chord lengths come from the triangles' angles (:func:`edge_chords`), except in triangles with an
+    edge whose two estimates disagree (tiny triangles): there the sine law scales the placed side.
+    That keeps the walk stable (lengths from data do not compound) where the data is good, and
+    local where it is not.
 
     Parameters
     ----------
@@ -148,37 +188,56 @@ def walk(connectivity, angles, seed_face, chords=None, average=True):
         Average the placements of a vertex from all triangles of its level that reach it, weighted
         by sin^2 of the angle at the vertex (the paper's averaging of unfolding sequences); otherwise
         use the best-conditioned one.
+    repair : bool
+        Correct the completed part of the mesh (:func:`correct`) whenever a level completes a
+        triangle with an angle error above ``WALK_REPAIR_ERROR``.
 
     Returns
     -------
     positions : (n, 3) array of unit vectors
     levels : int
         Number of breadth-first levels (the depth of the walk).
+    repairs : int
+        Number of corrections run during the walk.
 
     Examples
     --------
     >>> from sphere_nlp.shapes import octahedron
     >>> from sphere_nlp.connectivity import build_connectivity
     >>> V, F = octahedron()
-    >>> X, levels = walk(build_connectivity(F, 6), np.full((8, 3), np.pi / 2), 0)
-    >>> bool(np.allclose(np.abs(X).max(1), 1)), levels
-    (True, 1)
+    >>> X, levels, repairs = walk(build_connectivity(F, 6), np.full((8, 3), np.pi / 2), 0)
+    >>> bool(np.allclose(np.abs(X).max(1), 1)), levels, repairs
+    (True, 1, 0)
     """
     F = connectivity.faces
-    n = connectivity.n_vertices
+    n, t = connectivity.n_vertices, connectivity.n_faces
     A = np.asarray(angles, float)
+    edge_of_corner = corner_edges(connectivity)
     if chords is None:
         chords = edge_chords(connectivity, A)[0]
-    chord_at = chords[corner_edges(connectivity)].reshape(-1, 3)   # chord opposite each corner
+    chord_at = chords[edge_of_corner].reshape(-1, 3)               # chord opposite each corner
+    mismatch = _edge_mismatch(connectivity, A)
+    unreliable = (mismatch[edge_of_corner] > RELIABLE_CHORD_MISMATCH).reshape(-1, 3).any(1)
     sin_at = np.sin(A)
+    # Faces around each vertex, to update the count of placed vertices per face incrementally.
+    faces_of_vertex = sp.csr_matrix((np.ones(3 * t), (F.ravel(), np.repeat(np.arange(t), 3))), shape=(n, t))
+
+    def touched_faces(vertices):
+        return faces_of_vertex[vertices].indices
+
     positions = np.zeros((n, 3))
     placed = np.zeros(n, bool)
+    count = np.zeros(t, np.int64)
     positions[F[seed_face]] = _seed_positions(A[seed_face], chord_at[seed_face])
     placed[F[seed_face]] = True
-    levels = 0
+    touched = touched_faces(F[seed_face])
+    np.add.at(count, touched, 1)
+    pending = np.zeros(0, np.int64)
+    levels = repairs = 0
+    placed_at_repair = 3
     while not placed.all():
-        count = placed[F].sum(1)
-        frontier = np.flatnonzero(count == 2)
+        frontier = np.union1d(pending, touched)
+        frontier = frontier[count[frontier] == 2]
         if len(frontier) == 0:
             raise RuntimeError("unfolding walk stalled: the triangle graph is not connected")
         Ff = F[frontier]
@@ -190,10 +249,18 @@ def walk(connectivity, angles, seed_face, chords=None, average=True):
         best = np.zeros(n)
         np.maximum.at(best, w, sin_w)
         ok = best[w] >= WELL_CONDITIONED_SIN
+        pending = frontier
         if ok.any():                                    # defer ill-conditioned vertices to a later level
             frontier, rows, w, u, v, next_, prev, sin_w = (x[ok] for x in (frontier, rows, w, u, v, next_,
                                                                             prev, sin_w))
-        guess = _place_third(positions[u], positions[v], chord_at[frontier, prev], chord_at[frontier, next_])
+        chord_uw, chord_vw = chord_at[frontier, prev], chord_at[frontier, next_]
+        local = unreliable[frontier]
+        if local.any():
+            fl = frontier[local]
+            chord_uv = np.linalg.norm(positions[u[local]] - positions[v[local]], axis=1)
+            chord_uw[local], chord_vw[local] = _sine_law_chords(
+                chord_uv, sin_at[fl, next_[local]], sin_at[fl, prev[local]], sin_w[local])
+        guess = _place_third(positions[u], positions[v], chord_uw, chord_vw)
         new = np.unique(w)
         if average:
             total = np.zeros((n, 3))
@@ -204,8 +271,21 @@ def walk(connectivity, angles, seed_face, chords=None, average=True):
             first = order[np.r_[True, w[order][1:] != w[order][:-1]]]
             positions[w[first]] = guess[first]
         placed[new] = True
+        touched = touched_faces(new)
+        np.add.at(count, touched, 1)
+        pending = pending[count[pending] == 2]
         levels += 1
-    return positions, levels
+        if repair and placed.sum() >= WALK_REPAIR_GROWTH * placed_at_repair:
+            completed = np.unique(touched[count[touched] == 3])
+            corners = positions[F[completed]].reshape(-1, 3)
+            error = np.abs(spherical_angles(corners, np.arange(len(corners)).reshape(-1, 3)) - A[completed])
+            if not error.max(initial=0.0) <= WALK_REPAIR_ERROR:
+                done = np.flatnonzero(count == 3)
+                # Only needs to be well inside Gauss-Newton's reach for the next stretch of walk.
+                positions = correct(F[done], A[done], positions, tolerance=1e-8)[0]
+                placed_at_repair = placed.sum()
+                repairs += 1
+    return positions, levels, repairs
 
 
 def tangent_bases(positions):
@@ -268,21 +348,44 @@ def _gradient(J, unknowns, residual, n):
                        minlength=2 * n)
 
 
-def _factorize_normal_matrix(J, unknowns, n, damping):
+def vertex_ordering(faces, n):
+    """Reverse Cuthill-McKee order of the vertices along the mesh edges.
+
+    SuperLU's minimum-degree ordering is fast and fills little when started from a spatially
+    coherent order, and very slow from some (36 s instead of 2 s on a 41k-vertex icosphere).
+    """
+    a, b = faces.ravel(), np.roll(faces, -1, axis=1).ravel()
+    graph = sp.csr_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(n, n))
+    return reverse_cuthill_mckee(graph, symmetric_mode=True)
+
+
+class _NormalMatrixFactor:
     """Sparse LU of J^T J + damping * diag(J^T J), assembled from the 6x6 blocks of the faces.
 
-    The matrix is symmetric positive definite, so SuperLU runs in symmetric mode on a minimum-degree
-    ordering of A + A^T without row pivoting. A tiny absolute term keeps the three rotations (the
-    null space) nonsingular; the gradient has no component along them, so they do not move.
+    The matrix is symmetric positive definite, so SuperLU runs in symmetric mode without row
+    pivoting, on a minimum-degree ordering of A + A^T applied after ``order`` (a vertex order). A
+    tiny absolute term keeps the three rotations (the null space) nonsingular; the gradient has no
+    component along them, so they do not move.
     """
-    blocks = np.einsum("tri,trj->tij", J, J)
-    rows = np.broadcast_to(unknowns[:, :, None], blocks.shape).ravel()
-    cols = np.broadcast_to(unknowns[:, None, :], blocks.shape).ravel()
-    H = sp.csc_matrix((blocks.ravel(), (rows, cols)), shape=(2 * n, 2 * n))
-    diag = H.diagonal()
-    H = H + sp.diags(damping * diag + 1e-12 * diag.mean(), format="csc")
-    return splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                 options=dict(SymmetricMode=True))
+
+    def __init__(self, J, unknowns, n, damping, order):
+        self.perm = (2 * np.asarray(order)[:, None] + np.arange(2)).ravel()   # new -> old unknown
+        rank = np.empty_like(self.perm)
+        rank[self.perm] = np.arange(len(self.perm))
+        unknowns = rank[unknowns]
+        blocks = np.einsum("tri,trj->tij", J, J)
+        rows = np.broadcast_to(unknowns[:, :, None], blocks.shape).ravel()
+        cols = np.broadcast_to(unknowns[:, None, :], blocks.shape).ravel()
+        H = sp.csc_matrix((blocks.ravel(), (rows, cols)), shape=(2 * n, 2 * n))
+        diag = H.diagonal()
+        H = H + sp.diags(damping * diag + 1e-12 * diag.mean(), format="csc")
+        self.lu = splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options=dict(SymmetricMode=True))
+
+    def solve(self, rhs):
+        out = np.empty_like(rhs)
+        out[self.perm] = self.lu.solve(rhs[self.perm])
+        return out
 
 
 def angle_errors(positions, faces, angles):
@@ -298,7 +401,13 @@ def chord_mismatch(positions, edges, chords):
     return float(np.max(np.abs(measured - chords) / chords))
 
 
-def correct(connectivity, angles, positions, max_iterations=20, tolerance=1e-13):
+# Largest angle residual (radians) at which a slowing simplified Gauss-Newton stops rather than pay for
+# another factorisation: far below any use of the angles (and the 1e-6 the pipeline promises), and
+# near the rounding floor of meshes with tiny triangles (~1e-9 on a 50k random hull).
+GOOD_ENOUGH = 1e-9
+
+
+def correct(faces, angles, positions, max_iterations=20, tolerance=1e-13):
     """Gauss-Newton on all corner-angle residuals, positions kept on the unit sphere.
 
     Each vertex moves in its tangent plane and is retracted by normalising. The normal matrix is
@@ -311,9 +420,11 @@ def correct(connectivity, angles, positions, max_iterations=20, tolerance=1e-13)
 
     Parameters
     ----------
-    connectivity : Connectivity
+    faces : (t, 3) int array
+        The triangles to fit (all of them, or those the walk has completed so far); only their
+        vertices move.
     angles : (t, 3) array
-        Solved angles to reproduce.
+        Solved angles of these triangles.
     positions : (n, 3) array
         Starting positions (the walk's).
     max_iterations : int
@@ -330,29 +441,36 @@ def correct(connectivity, angles, positions, max_iterations=20, tolerance=1e-13)
     Examples
     --------
     >>> from sphere_nlp.shapes import icosphere
-    >>> from sphere_nlp.connectivity import build_connectivity
     >>> V, F = icosphere(2)
     >>> rng = np.random.default_rng(0)
     >>> nudged = V + 1e-4 * rng.normal(size=V.shape)
-    >>> X, stats = correct(build_connectivity(F, len(V)), spherical_angles(V, F), nudged)
+    >>> X, stats = correct(F, spherical_angles(V, F), nudged)
     >>> float(np.abs(spherical_angles(X, F) - spherical_angles(V, F)).max()) < 1e-12
     True
     """
-    F = connectivity.faces
-    n = connectivity.n_vertices
+    used, F = np.unique(np.asarray(faces), return_inverse=True)
+    F = F.reshape(-1, 3)
+    n = len(used)
     A = np.asarray(angles, float)
-    X = _unit(np.asarray(positions, float))
+    X = _unit(np.asarray(positions, float)[used])
     r = spherical_angles(X, F) - A
     cost = float(np.sum(r * r))
     damping = 1e-10
     lu = bases = None
     fresh = False                     # is the factorisation from the current positions?
+    order = vertex_ordering(F, n)
     iterations = factorizations = 0
     while iterations < max_iterations and np.abs(r).max() > tolerance:
         if lu is None:
             bases = tangent_bases(X)
             J, unknowns = _angle_jacobian(X, F, bases)
-            lu = _factorize_normal_matrix(J, unknowns, n, damping)
+            try:
+                lu = _NormalMatrixFactor(J, unknowns, n, damping, order)
+            except RuntimeError:      # numerically singular: damp harder
+                damping *= 100
+                if damping > 1e4:
+                    break
+                continue
             factorizations += 1
             fresh = True
         else:
@@ -365,8 +483,8 @@ def correct(connectivity, angles, positions, max_iterations=20, tolerance=1e-13)
         if cost_trial < cost:
             X, r, cost_before, cost = trial, r_trial, cost, cost_trial
             if cost > 0.5 * cost_before:
-                if fresh:
-                    break             # at the rounding floor
+                if fresh or np.abs(r).max() <= GOOD_ENOUGH:
+                    break             # at the rounding floor, or close enough not to refactorise
                 lu = None             # the reused linearisation has gone stale
             fresh = False
             continue
@@ -375,7 +493,9 @@ def correct(connectivity, angles, positions, max_iterations=20, tolerance=1e-13)
                 break                 # a rounding-level wobble, or no step helps: stop here
             damping *= 100            # the linear model is not trusted this far: shorten the step
         lu = None
-    return X, {"iterations": iterations, "factorizations": factorizations}
+    out = np.array(positions, float)
+    out[used] = X
+    return out, {"iterations": iterations, "factorizations": factorizations}
 
 
 def unfold(connectivity, angles, seed_face=None, average=True, correction=True):
@@ -420,14 +540,15 @@ def unfold(connectivity, angles, seed_face=None, average=True, correction=True):
     chords, mismatch = edge_chords(connectivity, A)
     seed = central_face(connectivity) if seed_face is None else int(seed_face)
     clock = time.perf_counter()
-    positions, levels = walk(connectivity, A, seed, chords=chords, average=average)
-    info = {"seed_face": seed, "levels": levels, "edge_chord_mismatch": mismatch,
+    positions, levels, repairs = walk(connectivity, A, seed, chords=chords, average=average,
+                                      repair=correction)
+    info = {"seed_face": seed, "levels": levels, "walk_repairs": repairs, "edge_chord_mismatch": mismatch,
             "walk_s": time.perf_counter() - clock}
     info["walk_max_angle_error"], info["walk_rms_angle_error"] = angle_errors(positions, F, A)
     info["walk_max_chord_mismatch"] = chord_mismatch(positions, connectivity.edges, chords)
     if correction:
         clock = time.perf_counter()
-        positions, stats = correct(connectivity, A, positions)
+        positions, stats = correct(F, A, positions)
         info["correction_s"] = time.perf_counter() - clock
         info["correction_iterations"] = stats["iterations"]
         info["correction_factorizations"] = stats["factorizations"]
