@@ -143,8 +143,10 @@ def corner_edges(connectivity):
 WELL_CONDITIONED_SIN = 0.2
 
 # An edge whose chord, computed from each of its two triangles, disagrees by more than this (relative)
-# has an unreliable length: its triangles are too small for their excess to carry the scale.
-RELIABLE_CHORD_MISMATCH = 1e-6
+# has an unreliable length: its triangles are too small for their excess to carry the scale. A data
+# chord off by this much costs about as much angle error once, locally; the sine-law fallback instead
+# compounds along the walk, so the threshold is loose.
+RELIABLE_CHORD_MISMATCH = 1e-4
 
 
 def _sine_law_chords(chord_uv, sin_u, sin_v, sin_w):
@@ -161,12 +163,17 @@ def _sine_law_chords(chord_uv, sin_u, sin_v, sin_w):
 
 # When a level completes a triangle whose angles are off by more than this (radians), the walk stops
 # to run the correction on everything completed so far, then goes on from corrected positions: drift
-# compounds along the walk on meshes of skinny triangles, and Gauss-Newton needs a close start.
-WALK_REPAIR_ERROR = 1e-4
+# compounds along the walk on meshes of skinny triangles, and Gauss-Newton needs a close start. It
+# sits above the local error that chords with RELIABLE_CHORD_MISMATCH cause.
+WALK_REPAIR_ERROR = 1e-3
 
 # ... but only after the placed region has grown by this factor since the last repair, so that the
-# repairs cost a bounded multiple of one final correction.
+# repairs cost a bounded multiple of one final correction,
 WALK_REPAIR_GROWTH = 1.5
+
+# ... unless the error passes this, when a growth by WALK_URGENT_GROWTH is enough.
+WALK_URGENT_ERROR = 3e-2
+WALK_URGENT_GROWTH = 1.1
 
 
 def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True):
@@ -275,11 +282,16 @@ def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True
         np.add.at(count, touched, 1)
         pending = pending[count[pending] == 2]
         levels += 1
-        if repair and placed.sum() >= WALK_REPAIR_GROWTH * placed_at_repair:
+        growth = placed.sum() / placed_at_repair
+        if repair and growth >= WALK_URGENT_GROWTH:
             completed = np.unique(touched[count[touched] == 3])
             corners = positions[F[completed]].reshape(-1, 3)
             error = np.abs(spherical_angles(corners, np.arange(len(corners)).reshape(-1, 3)) - A[completed])
-            if not error.max(initial=0.0) <= WALK_REPAIR_ERROR:
+            error = error.max(initial=0.0)
+            # Near the end the final correction will do: only urgent repairs then.
+            tolerable = WALK_URGENT_ERROR if (growth < WALK_REPAIR_GROWTH or placed.sum() > 0.8 * n) \
+                else WALK_REPAIR_ERROR
+            if not error <= tolerable:
                 done = np.flatnonzero(count == 3)
                 # Only needs to be well inside Gauss-Newton's reach for the next stretch of walk.
                 positions = correct(F[done], A[done], positions, tolerance=1e-8)[0]
@@ -402,16 +414,16 @@ def chord_mismatch(positions, edges, chords):
 
 
 # Largest angle residual (radians) at which a slowing simplified Gauss-Newton stops rather than pay for
-# another factorisation: far below any use of the angles (and the 1e-6 the pipeline promises), and
-# near the rounding floor of meshes with tiny triangles (~1e-9 on a 50k random hull).
-GOOD_ENOUGH = 1e-9
+# another factorisation: two orders below the 1e-6 the pipeline promises, and just above the rounding
+# floor of meshes with tiny triangles (~3e-9 on a 50k random hull).
+GOOD_ENOUGH = 1e-8
 
 
 def correct(faces, angles, positions, max_iterations=20, tolerance=1e-13):
     """Gauss-Newton on all corner-angle residuals, positions kept on the unit sphere.
 
     Each vertex moves in its tangent plane and is retracted by normalising. The normal matrix is
-    factorised once and reused while steps keep shrinking the residual fast (a simplified
+    factorised once and reused while steps keep shrinking the sum of squares tenfold (a simplified
     Gauss-Newton; on a consistent problem the first two or three steps already gain several digits
     each); it is refactorised at the current positions when progress slows, with more
     Levenberg-Marquardt damping when a step fails. It stops when the largest residual is below
@@ -482,9 +494,11 @@ def correct(faces, angles, positions, max_iterations=20, tolerance=1e-13):
         iterations += 1
         if cost_trial < cost:
             X, r, cost_before, cost = trial, r_trial, cost, cost_trial
-            if cost > 0.5 * cost_before:
-                if fresh or np.abs(r).max() <= GOOD_ENOUGH:
-                    break             # at the rounding floor, or close enough not to refactorise
+            if fresh and cost > 0.5 * cost_before:
+                break                 # at the rounding floor
+            if not fresh and cost > 0.1 * cost_before:
+                if np.abs(r).max() <= GOOD_ENOUGH:
+                    break             # close enough not to pay for another factorisation
                 lu = None             # the reused linearisation has gone stale
             fresh = False
             continue
