@@ -5,18 +5,22 @@ Two stages:
 1. **Walk.** Breadth-first from a central triangle (one of least eccentricity in the triangle graph),
    level by level, so paths from the seed are as short as the mesh allows and each level is placed
    in one vectorised step. A new vertex ``w`` of a triangle ``(w, u, v)`` whose ``u`` and ``v`` are
-   placed is put where the great circles leaving ``u`` and ``v`` at the triangle's solved angles meet
-   (angle-side-angle). This uses angles only: chord lengths derived from angles are ill-conditioned
-   for small triangles, whose excess (the only scale information in their angles) is a tiny
-   difference of large numbers. When several triangles of a level reach the same vertex, the
-   placements are averaged with weights ``sin^2`` of the angle at ``w`` (the paper's averaging idea;
-   that sine is the conditioning of the intersection), or only the best one is used.
+   placed goes where the unit sphere meets the two spheres of radius the chords uw and vw (chords
+   from the half-angle formula; lengths from data keep errors from compounding). In triangles too
+   small for their excess to carry a scale, the chords come from the sine law on the placed side
+   instead. A vertex is placed from its best-conditioned triangles (sin of the angle at ``w``),
+   ill-conditioned ones wait a level, and placements from several triangles of a level are averaged
+   with weights ``sin^2`` (the paper's averaging idea). If a level completes triangles whose angles
+   are off by more than ``WALK_REPAIR_ERROR``, the completed region is corrected (stage 2) before
+   the walk goes on; well-shaped meshes never need it.
 2. **Correction.** The walk accumulates error with depth (the paper's "numerical error, which
-   increases with the number of triangles"). Damped Gauss-Newton on all corner-angle residuals
+   increases with the number of triangles"). Gauss-Newton on all corner-angle residuals
    ``angle(positions) - solved angle`` removes it: each vertex moves in its tangent plane and is
    retracted onto the sphere by normalising; the normal equations are sparse (2 unknowns per vertex,
-   one 6x6 block per triangle) and solved directly. A tiny Levenberg-Marquardt damping fixes the 3
-   rotational degrees of freedom (the gradient has no component along them).
+   one 6x6 block per triangle) and solved by sparse LU, reused across steps while it keeps working.
+   A tiny Levenberg-Marquardt damping fixes the 3 rotational degrees of freedom (the gradient has no
+   component along them). Fitting angles rather than chords matters: the angles are what the NLP
+   guarantees, and they fix the shape of even the smallest triangles, whose chords they do not.
 """
 
 import time
@@ -81,11 +85,12 @@ def _edge_mismatch(connectivity, angles):
     return np.abs(c1 - c2) / np.maximum(np.maximum(c1, c2), 1e-300)
 
 
-def central_face(connectivity):
+def central_face(connectivity, acceptable=None):
     """A triangle of (approximately) least eccentricity in the triangle adjacency graph.
 
     Two sweeps find a pair of far-apart triangles; the face minimising the larger distance to them
-    is near the graph's centre, so the walk from it is about half the diameter deep.
+    is near the graph's centre, so the walk from it is about half the diameter deep. With
+    ``acceptable`` (a boolean mask over faces, not all False) the choice is among those faces.
     """
     t = connectivity.n_faces
     f1, f2 = connectivity.edge_faces.T
@@ -95,7 +100,10 @@ def central_face(connectivity):
     d1 = shortest_path(graph, directed=False, unweighted=True, indices=far1)
     far2 = int(np.argmax(d1))
     d2 = shortest_path(graph, directed=False, unweighted=True, indices=far2)
-    return int(np.argmin(np.maximum(d1, d2)))
+    eccentricity = np.maximum(d1, d2)
+    if acceptable is not None and np.any(acceptable):
+        eccentricity = np.where(acceptable, eccentricity, np.inf)
+    return int(np.argmin(eccentricity))
 
 
 def _unit(x):
@@ -552,7 +560,13 @@ def unfold(connectivity, angles, seed_face=None, average=True, correction=True):
     F = connectivity.faces
     A = np.asarray(angles, float)
     chords, mismatch = edge_chords(connectivity, A)
-    seed = central_face(connectivity) if seed_face is None else int(seed_face)
+    if seed_face is None:
+        # The seed's chords set the scale of the whole walk: take a well-shaped, reliable one.
+        reliable = _edge_mismatch(connectivity, A)[corner_edges(connectivity)].reshape(-1, 3).max(1) \
+            <= RELIABLE_CHORD_MISMATCH
+        seed = central_face(connectivity, reliable & (np.sin(A).min(1) >= WELL_CONDITIONED_SIN))
+    else:
+        seed = int(seed_face)
     clock = time.perf_counter()
     positions, levels, repairs = walk(connectivity, A, seed, chords=chords, average=average,
                                       repair=correction)
