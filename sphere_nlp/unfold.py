@@ -529,23 +529,26 @@ def unfold(connectivity, angles, seed_face=None, average=True, correction=True):
     angles : (t, 3) array
         Solved spherical angles (they must satisfy (6)-(8)).
     seed_face : int, optional
-        First triangle to place; default :func:`central_face`.
+        First triangle to place; default :func:`central_face` among well-shaped faces with reliable
+        chords.
     average : bool
         Average the walk's placements of a vertex over the triangles that reach it (default), or use
         the best-conditioned triangle only.
     correction : bool
-        Run the Gauss-Newton correction after the walk (default).
+        Run the Gauss-Newton correction after the walk, and the walk's own repairs (default).
 
     Returns
     -------
     positions : (n, 3) array of unit vectors
     info : dict
-        ``seed_face``, ``levels`` (breadth-first levels walked), ``edge_chord_mismatch`` (largest
-        relative disagreement of an edge's chord between its two triangles), and for the walk and the
-        corrected positions: ``walk_*`` / ``corrected_*`` with ``max_angle_error``,
-        ``rms_angle_error`` (radians, against the solved angles) and ``max_chord_mismatch`` (relative,
-        against the chords of the solved angles); ``correction_iterations``, ``walk_s``,
-        ``correction_s``.
+        ``seed_face``; ``levels`` (breadth-first levels walked); ``walk_repairs`` (corrections run
+        during the walk, 0 on well-shaped meshes); ``edge_chord_mismatch`` (largest relative
+        disagreement of an edge's chord between its two triangles); for the walk's positions
+        (``walk_*``, before the final correction) and the returned ones (``corrected_*``):
+        ``max_angle_error`` and ``rms_angle_error`` (radians, against the solved angles) and
+        ``max_chord_mismatch`` (relative, against the chords of the solved angles, which for tiny
+        triangles are themselves uncertain); ``correction_iterations``,
+        ``correction_factorizations``; ``walk_s``, ``correction_s`` (seconds).
 
     Examples
     --------
