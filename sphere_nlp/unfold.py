@@ -55,9 +55,12 @@ def half_chords_squared(angles):
 def edge_chords(connectivity, angles):
     """Chord length 2 sin(a/2) of every edge, averaged over its two triangles, (m,).
 
-    Also returns the largest relative disagreement between the two triangles of an edge. For small
-    triangles this disagreement mostly measures how poorly angles determine scale, not an error in
-    the angles.
+    A triangle's chords are only as good as its excess E = sum of angles - pi, a small difference of
+    large numbers: an angle error d makes them off by about d / E relative. The two estimates are
+    therefore weighted by E^2 (inverse variance), so a long edge shared by a needle and a normal
+    triangle takes the normal one's length. Also returns the largest relative disagreement between
+    the two triangles of an edge, which for small triangles mostly measures how poorly angles
+    determine scale, not an error in the angles.
 
     Examples
     --------
@@ -69,7 +72,9 @@ def edge_chords(connectivity, angles):
     (True, True)
     """
     c1, c2 = _chord_pairs(connectivity, angles)
-    return 0.5 * (c1 + c2), float(_edge_mismatch(connectivity, angles).max(initial=0.0))
+    excess = np.asarray(angles, float).sum(1) - np.pi
+    w1, w2 = (np.maximum(excess[f], 1e-300) ** 2 for f in connectivity.edge_faces.T)
+    return (w1 * c1 + w2 * c2) / (w1 + w2), float(_edge_mismatch(connectivity, angles).max(initial=0.0))
 
 
 def _chord_pairs(connectivity, angles):
