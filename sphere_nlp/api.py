@@ -63,6 +63,10 @@ class SphericalParameterization:
     repairs : list of str
         Repairs made to the input.
     unfold_info : dict
+        Statistics of :func:`~sphere_nlp.unfold.unfold`: the walk's depth (``levels``) and in-walk
+        repairs, and before (``walk_*``) and after (``corrected_*``) the Gauss-Newton correction the
+        max and RMS |angle from positions - solved angle| (radians) and the max relative mismatch of
+        edge chords against those of the solved angles; ``walk_s`` and ``correction_s`` seconds.
     peak_rss_mb : float
     """
 
@@ -123,7 +127,8 @@ class SphericalParameterization:
             "timings_s": {k: round(float(v), 6) for k, v in self.timings.items()},
             "peak_rss_mb": round(float(self.peak_rss_mb), 1),
             "repairs": list(self.repairs),
-            "unfold": {k: (float(v) if isinstance(v, (float, np.floating)) else v)
+            "unfold": {k: (float(v) if isinstance(v, (float, np.floating))
+                           else int(v) if isinstance(v, np.integer) else v)
                        for k, v in self.unfold_info.items()},
         }
 

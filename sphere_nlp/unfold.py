@@ -1,17 +1,36 @@
 """Unfold solved spherical angles into vertex positions on the unit sphere (section 5 of the paper).
 
-Arc lengths come from the angles of each triangle; the first triangle is placed directly, then every
-other vertex is placed from a triangle whose other two vertices are already placed, at the
-intersection of the unit sphere with two spheres whose radii are the chord lengths.
+Two stages:
 
-The walk is breadth-first from a central triangle (one of least eccentricity in the triangle graph),
-level by level, so paths from the seed are as short as the mesh allows and each level is placed in one
-vectorised step.
+1. **Walk.** Breadth-first from a central triangle (one of least eccentricity in the triangle graph),
+   level by level, so paths from the seed are as short as the mesh allows and each level is placed
+   in one vectorised step. A new vertex ``w`` of a triangle ``(w, u, v)`` whose ``u`` and ``v`` are
+   placed goes where the unit sphere meets the two spheres of radius the chords uw and vw (chords
+   from the half-angle formula; lengths from data keep errors from compounding). In triangles too
+   small for their excess to carry a scale, the chords come from the sine law on the placed side
+   instead. A vertex is placed from its best-conditioned triangles (sin of the angle at ``w``),
+   ill-conditioned ones wait a level, and placements from several triangles of a level are averaged
+   with weights ``sin^2`` (the paper's averaging idea). If a level completes triangles whose angles
+   are off by more than ``WALK_REPAIR_ERROR``, the completed region is corrected (stage 2) before
+   the walk goes on; well-shaped meshes never need it.
+2. **Correction.** The walk accumulates error with depth (the paper's "numerical error, which
+   increases with the number of triangles"). Gauss-Newton on all corner-angle residuals
+   ``angle(positions) - solved angle`` removes it: each vertex moves in its tangent plane and is
+   retracted onto the sphere by normalising; the normal equations are sparse (2 unknowns per vertex,
+   one 6x6 block per triangle) and solved by sparse LU, reused across steps while it keeps working.
+   A tiny Levenberg-Marquardt damping fixes the 3 rotational degrees of freedom (the gradient has no
+   component along them). Fitting angles rather than chords matters: the angles are what the NLP
+   guarantees, and they fix the shape of even the smallest triangles, whose chords they do not.
 """
+
+import time
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import shortest_path
+from scipy.sparse.csgraph import reverse_cuthill_mckee, shortest_path
+from scipy.sparse.linalg import splu
+
+from .certify import spherical_angles
 
 
 def half_chords_squared(angles, excess=None):
@@ -21,13 +40,17 @@ def half_chords_squared(angles, excess=None):
     sin^2(a/2) = sin(E/2) cos(S - A) / (sin B sin C), with E the excess and S = (pi + E) / 2, which stays
     accurate for short arcs where cos a is close to 1 and the plain cosine rule loses digits.
     Pass the solved ``excess`` when it is known: recomputing E = A + B + C - pi loses all its digits
-    for tiny triangles (E of 1e-13 next to angles of 1).
+    for tiny triangles (E of 1e-13 next to angles of 1); the log-chord solve carries E exactly.
+
+    Examples
+    --------
+    >>> s2 = half_chords_squared(np.full((1, 3), np.pi / 2))   # octant: every arc is pi / 2
+    >>> bool(np.allclose(s2, 0.5))
+    True
     """
     A = np.asarray(angles, float)
     B, C = np.roll(A, -1, axis=1), np.roll(A, -2, axis=1)
-    if excess is None:
-        excess = A.sum(1) - np.pi
-    excess = np.asarray(excess, float)[:, None]
+    excess = (A.sum(1) - np.pi if excess is None else np.asarray(excess, float))[:, None]
     # cos(S - A) = sin(A - E/2): the same quantity without the cancellation near pi/2.
     return np.sin(excess / 2) * np.sin(A - excess / 2) / (np.sin(B) * np.sin(C))
 
@@ -35,18 +58,50 @@ def half_chords_squared(angles, excess=None):
 def edge_chords(connectivity, angles, excess=None):
     """Chord length 2 sin(a/2) of every edge, averaged over its two triangles, (m,).
 
-    Also returns the largest relative disagreement between the two triangles of an edge.
+    A triangle's chords are only as good as its excess E = sum of angles - pi, a small difference of
+    large numbers: an angle error d makes them off by about d / E relative. The two estimates are
+    therefore weighted by E^2 (inverse variance), so a long edge shared by a needle and a normal
+    triangle takes the normal one's length. Also returns the largest relative disagreement between
+    the two triangles of an edge, which for small triangles mostly measures how poorly angles
+    determine scale, not an error in the angles.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> from sphere_nlp.connectivity import build_connectivity
+    >>> V, F = octahedron()
+    >>> chords, mismatch = edge_chords(build_connectivity(F, 6), np.full((8, 3), np.pi / 2))
+    >>> bool(np.allclose(chords, np.sqrt(2))), mismatch < 1e-15
+    (True, True)
     """
-    s2 = np.clip(half_chords_squared(angles, excess), 0.0, 1.0).ravel()
-    chord = 2 * np.sqrt(s2)
+    c1, c2 = _chord_pairs(connectivity, angles, excess)
+    if excess is None:
+        excess = np.asarray(angles, float).sum(1) - np.pi
+    w1, w2 = (np.maximum(excess[f], 1e-300) ** 2 for f in connectivity.edge_faces.T)
+    return ((w1 * c1 + w2 * c2) / (w1 + w2),
+            float(_edge_mismatch(connectivity, angles, excess).max(initial=0.0)))
+
+
+def _chord_pairs(connectivity, angles, excess=None):
+    """Chord of every edge as computed from each of its two triangles, two (m,) arrays."""
+    chord = 2 * np.sqrt(np.clip(half_chords_squared(angles, excess), 0.0, 1.0).ravel())
     c = connectivity.edge_corner_indices()
-    c1, c2 = chord[c[:, 0]], chord[c[:, 1]]
-    mismatch = np.abs(c1 - c2) / np.maximum(np.maximum(c1, c2), 1e-300)
-    return 0.5 * (c1 + c2), float(mismatch.max(initial=0.0))
+    return chord[c[:, 0]], chord[c[:, 1]]
 
 
-def central_face(connectivity):
-    """A triangle of (approximately) least eccentricity in the triangle adjacency graph."""
+def _edge_mismatch(connectivity, angles, excess=None):
+    """Relative disagreement of every edge's chord between its two triangles, (m,)."""
+    c1, c2 = _chord_pairs(connectivity, angles, excess)
+    return np.abs(c1 - c2) / np.maximum(np.maximum(c1, c2), 1e-300)
+
+
+def central_face(connectivity, acceptable=None):
+    """A triangle of (approximately) least eccentricity in the triangle adjacency graph.
+
+    Two sweeps find a pair of far-apart triangles; the face minimising the larger distance to them
+    is near the graph's centre, so the walk from it is about half the diameter deep. With
+    ``acceptable`` (a boolean mask over faces, not all False) the choice is among those faces.
+    """
     t = connectivity.n_faces
     f1, f2 = connectivity.edge_faces.T
     graph = sp.coo_matrix((np.ones(len(f1)), (f1, f2)), shape=(t, t)).tocsr()
@@ -55,22 +110,14 @@ def central_face(connectivity):
     d1 = shortest_path(graph, directed=False, unweighted=True, indices=far1)
     far2 = int(np.argmax(d1))
     d2 = shortest_path(graph, directed=False, unweighted=True, indices=far2)
-    return int(np.argmin(np.maximum(d1, d2)))
+    eccentricity = np.maximum(d1, d2)
+    if acceptable is not None and np.any(acceptable):
+        eccentricity = np.where(acceptable, eccentricity, np.inf)
+    return int(np.argmin(eccentricity))
 
 
-def _place_third(pu, pv, chord_uw, chord_vw):
-    """Unit vectors w with |w - pu| = chord_uw, |w - pv| = chord_vw and det[pu, pv, w] > 0 (vectorised)."""
-    cu = 1 - chord_uw ** 2 / 2            # w . pu
-    cv = 1 - chord_vw ** 2 / 2            # w . pv
-    g = np.einsum("ij,ij->i", pu, pv)
-    denom = np.maximum(1 - g * g, 1e-300)
-    a = (cu - g * cv) / denom
-    b = (cv - g * cu) / denom
-    normal = np.cross(pu, pv)             # |normal|^2 = 1 - g^2
-    in_plane = a * a + b * b + 2 * a * b * g
-    c = np.sqrt(np.maximum(1 - in_plane, 0) / denom)
-    w = a[:, None] * pu + b[:, None] * pv + c[:, None] * normal
-    return w / np.linalg.norm(w, axis=1, keepdims=True)
+def _unit(x):
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
 
 
 def _place_by_angle(pu, pv, angle_at_u, chord_uw):
@@ -78,7 +125,8 @@ def _place_by_angle(pu, pv, angle_at_u, chord_uw):
     u -> v, counter-clockwise seen from outside (vectorised).
 
     Works with differences from pu, never with dot products close to 1, so tiny triangles keep
-    their relative accuracy (intersecting spheres loses it: 1 - (pu.pv)^2 cancels).
+    their relative accuracy (intersecting spheres does not: 1 - (pu.pv)^2 cancels; on the knight's
+    equal-angles map, with excesses of 2e-13, that walk flipped 22 triangles).
     """
     d = pv - pu
     toward_v = d - np.einsum("ij,ij->i", d, pu)[:, None] * pu       # tangent at pu toward v
@@ -92,7 +140,402 @@ def _place_by_angle(pu, pv, angle_at_u, chord_uw):
     return w / np.linalg.norm(w, axis=1, keepdims=True)
 
 
-def unfold(connectivity, angles, seed_face=None, excess=None):
+def _seed_positions(angles_seed, chords_seed):
+    """Positions of the first triangle: corner 0 at the north pole, corner 1 on the +x meridian.
+
+    ``chords_seed[j]`` is the chord opposite corner j.
+    """
+    arc = 2 * np.arcsin(np.minimum(np.asarray(chords_seed) / 2, 1.0))
+    ab, ac = arc[2], arc[1]
+    A = angles_seed[0]
+    return np.array([[0.0, 0.0, 1.0],
+                     [np.sin(ab), 0.0, np.cos(ab)],
+                     [np.sin(ac) * np.cos(A), np.sin(ac) * np.sin(A), np.cos(ac)]])
+
+
+def corner_edges(connectivity):
+    """Edge index opposite every flat corner 3 * i + j, (3t,)."""
+    corners = connectivity.edge_corner_indices()
+    out = np.empty(3 * connectivity.n_faces, np.int64)
+    out[corners[:, 0]] = out[corners[:, 1]] = np.arange(connectivity.n_edges)
+    return out
+
+
+# A vertex is placed from a triangle only when sin(angle at the vertex) is at least this, unless no
+# vertex of the level qualifies: the chord-sphere intersection loses ~1/sin of that angle in accuracy.
+WELL_CONDITIONED_SIN = 0.2
+
+# An edge whose chord, computed from each of its two triangles, disagrees by more than this (relative)
+# has an unreliable length: its triangles are too small for their excess to carry the scale. A data
+# chord off by this much costs about as much angle error once, locally; the sine-law fallback instead
+# compounds along the walk, so the threshold is loose.
+RELIABLE_CHORD_MISMATCH = 1e-4
+
+
+def _sine_law_chords(chord_uv, sin_u, sin_v, sin_w):
+    """Chords uw and vw of a triangle (w, u, v) from its side uv and the sines of its angles.
+
+    Spherical sine law sin(uw) / sin V = sin(vw) / sin U = sin(uv) / sin W, taking the arcs below
+    pi / 2: used for small triangles only, where it holds the ratios the angles fix well.
+    """
+    sin_uv = np.sin(2 * np.arcsin(np.minimum(chord_uv / 2, 1.0)))
+    arc_uw = np.arcsin(np.minimum(sin_uv * sin_v / sin_w, 1.0))
+    arc_vw = np.arcsin(np.minimum(sin_uv * sin_u / sin_w, 1.0))
+    return 2 * np.sin(arc_uw / 2), 2 * np.sin(arc_vw / 2)
+
+
+# When a level completes a triangle whose angles are off by more than this (radians), the walk stops
+# to run the correction on everything completed so far, then goes on from corrected positions: drift
+# compounds along the walk on meshes of skinny triangles, and Gauss-Newton needs a close start. It
+# sits above the local error that chords with RELIABLE_CHORD_MISMATCH cause.
+WALK_REPAIR_ERROR = 1e-3
+
+# ... but only after the placed region has grown by this factor since the last repair, so that the
+# repairs cost a bounded multiple of one final correction,
+WALK_REPAIR_GROWTH = 1.5
+
+# ... unless the error passes this, when a growth by WALK_URGENT_GROWTH is enough.
+WALK_URGENT_ERROR = 3e-2
+WALK_URGENT_GROWTH = 1.1
+
+
+def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True, excess=None):
+    """Breadth-first placement of every vertex from two placed neighbours and two chord lengths.
+
+    Chord lengths come from the triangles' angles (:func:`edge_chords`), except in triangles with an
+    edge whose two estimates disagree (tiny triangles): there the sine law scales the placed side.
+    That keeps the walk stable (lengths from data do not compound) where the data is good, and
+    local where it is not.
+
+    Parameters
+    ----------
+    connectivity : Connectivity
+    angles : (t, 3) array
+    seed_face : int
+    chords : (m,) array, optional
+        Chord length of every edge; default :func:`edge_chords` of the angles.
+    average : bool
+        Average the placements of a vertex from all triangles of its level that reach it, weighted
+        by sin^2 of the angle at the vertex (the paper's averaging of unfolding sequences); otherwise
+        use the best-conditioned one.
+    repair : bool
+        Correct the completed part of the mesh (:func:`correct`) whenever a level completes a
+        triangle with an angle error above ``WALK_REPAIR_ERROR``.
+
+    Returns
+    -------
+    positions : (n, 3) array of unit vectors
+    levels : int
+        Number of breadth-first levels (the depth of the walk).
+    repairs : int
+        Number of corrections run during the walk.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> from sphere_nlp.connectivity import build_connectivity
+    >>> V, F = octahedron()
+    >>> X, levels, repairs = walk(build_connectivity(F, 6), np.full((8, 3), np.pi / 2), 0)
+    >>> bool(np.allclose(np.abs(X).max(1), 1)), levels, repairs
+    (True, 1, 0)
+    """
+    F = connectivity.faces
+    n, t = connectivity.n_vertices, connectivity.n_faces
+    A = np.asarray(angles, float)
+    edge_of_corner = corner_edges(connectivity)
+    if chords is None:
+        chords = edge_chords(connectivity, A, excess)[0]
+    chord_at = chords[edge_of_corner].reshape(-1, 3)               # chord opposite each corner
+    mismatch = _edge_mismatch(connectivity, A, excess)
+    unreliable = (mismatch[edge_of_corner] > RELIABLE_CHORD_MISMATCH).reshape(-1, 3).any(1)
+    sin_at = np.sin(A)
+    # Faces around each vertex, to update the count of placed vertices per face incrementally.
+    faces_of_vertex = sp.csr_matrix((np.ones(3 * t), (F.ravel(), np.repeat(np.arange(t), 3))), shape=(n, t))
+
+    def touched_faces(vertices):
+        return faces_of_vertex[vertices].indices
+
+    positions = np.zeros((n, 3))
+    placed = np.zeros(n, bool)
+    count = np.zeros(t, np.int64)
+    positions[F[seed_face]] = _seed_positions(A[seed_face], chord_at[seed_face])
+    placed[F[seed_face]] = True
+    touched = touched_faces(F[seed_face])
+    np.add.at(count, touched, 1)
+    pending = np.zeros(0, np.int64)
+    levels = repairs = 0
+    placed_at_repair = 3
+    while not placed.all():
+        frontier = np.union1d(pending, touched)
+        frontier = frontier[count[frontier] == 2]
+        if len(frontier) == 0:
+            raise RuntimeError("unfolding walk stalled: the triangle graph is not connected")
+        Ff = F[frontier]
+        missing = np.argmin(placed[Ff], axis=1)          # local index of the unplaced vertex
+        rows = np.arange(len(frontier))
+        next_, prev = (missing + 1) % 3, (missing + 2) % 3
+        w, u, v = Ff[rows, missing], Ff[rows, next_], Ff[rows, prev]   # (w, u, v) in cyclic order
+        sin_w = sin_at[frontier, missing]
+        best = np.zeros(n)
+        np.maximum.at(best, w, sin_w)
+        ok = best[w] >= WELL_CONDITIONED_SIN
+        pending = frontier
+        if ok.any():                                    # defer ill-conditioned vertices to a later level
+            frontier, rows, w, u, v, next_, prev, sin_w = (x[ok] for x in (frontier, rows, w, u, v, next_,
+                                                                            prev, sin_w))
+        chord_uw, chord_vw = chord_at[frontier, prev], chord_at[frontier, next_]
+        local = unreliable[frontier]
+        if local.any():
+            fl = frontier[local]
+            chord_uv = np.linalg.norm(positions[u[local]] - positions[v[local]], axis=1)
+            chord_uw[local], chord_vw[local] = _sine_law_chords(
+                chord_uv, sin_at[fl, next_[local]], sin_at[fl, prev[local]], sin_w[local])
+        guess = _place_by_angle(positions[u], positions[v], A[frontier, next_], chord_uw)
+        new = np.unique(w)
+        if average:
+            total = np.zeros((n, 3))
+            np.add.at(total, w, (sin_w ** 2)[:, None] * guess)
+            positions[new] = _unit(total[new])
+        else:
+            order = np.lexsort((-sin_w, w))               # best-conditioned triangle first per vertex
+            first = order[np.r_[True, w[order][1:] != w[order][:-1]]]
+            positions[w[first]] = guess[first]
+        placed[new] = True
+        touched = touched_faces(new)
+        np.add.at(count, touched, 1)
+        pending = pending[count[pending] == 2]
+        levels += 1
+        growth = placed.sum() / placed_at_repair
+        if repair and growth >= WALK_URGENT_GROWTH:
+            completed = np.unique(touched[count[touched] == 3])
+            corners = positions[F[completed]].reshape(-1, 3)
+            error = np.abs(spherical_angles(corners, np.arange(len(corners)).reshape(-1, 3)) - A[completed])
+            error = error.max(initial=0.0)
+            # Near the end the final correction will do: only urgent repairs then.
+            tolerable = WALK_URGENT_ERROR if (growth < WALK_REPAIR_GROWTH or placed.sum() > 0.8 * n) \
+                else WALK_REPAIR_ERROR
+            if not error <= tolerable:
+                done = np.flatnonzero(count == 3)
+                # Only needs to be well inside Gauss-Newton's reach for the next stretch of walk.
+                positions = correct(F[done], A[done], positions, tolerance=1e-8)[0]
+                placed_at_repair = placed.sum()
+                repairs += 1
+    return positions, levels, repairs
+
+
+def tangent_bases(positions):
+    """Two orthonormal tangent vectors at every unit vector, (n, 3, 2).
+
+    Examples
+    --------
+    >>> X = np.array([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]])
+    >>> T = tangent_bases(X)
+    >>> bool(np.allclose(np.einsum("ni,nid->nd", X, T), 0))
+    True
+    """
+    helper = np.zeros_like(positions)
+    helper[np.arange(len(positions)), np.argmin(np.abs(positions), axis=1)] = 1.0
+    e1 = _unit(np.cross(positions, helper))
+    e2 = np.cross(positions, e1)
+    return np.stack([e1, e2], axis=2)
+
+
+def angle_gradients(positions, faces):
+    """Gradient of every corner angle with respect to the three vertices of its triangle, (t, 3, 3, 3).
+
+    ``G[i, j, k]`` is the gradient of the angle at corner ``j`` of face ``i`` with respect to the
+    position of the vertex at corner ``k``, tangent to the sphere there. With a the corner's vertex and
+    b, c the next ones, the angle is the azimuth of c minus that of b around a, so
+    d/db = -(a x b)/|a x b|^2, d/dc = (a x c)/|a x c|^2, and d/da follows from invariance under
+    rotations: (a.b)(a x b)/|a x b|^2 - (a.c)(a x c)/|a x c|^2.
+    """
+    P = positions[faces]
+    a, b, c = P, np.roll(P, -1, axis=1), np.roll(P, -2, axis=1)
+    ab, ac = np.cross(a, b), np.cross(a, c)
+    ab2 = np.einsum("tjk,tjk->tj", ab, ab)[..., None]
+    ac2 = np.einsum("tjk,tjk->tj", ac, ac)[..., None]
+    g_b = -ab / ab2
+    g_c = ac / ac2
+    g_a = (np.einsum("tjk,tjk->tj", a, b)[..., None] * ab / ab2
+           - np.einsum("tjk,tjk->tj", a, c)[..., None] * ac / ac2)
+    G = np.empty(P.shape[:2] + (3, 3))
+    j = np.arange(3)
+    G[:, j, j] = g_a
+    G[:, j, (j + 1) % 3] = g_b
+    G[:, j, (j + 2) % 3] = g_c
+    return G
+
+
+def _angle_jacobian(positions, faces, bases):
+    """Jacobian of the corner angles in tangent-plane coordinates: one (3, 6) block per face.
+
+    Returns the blocks (t, 3, 6) and the unknown index of each of their columns (t, 6); vertex p has
+    unknowns 2p and 2p + 1, its coordinates along ``bases[p]``.
+    """
+    G = angle_gradients(positions, faces)                          # (t, corner, slot, xyz)
+    J = np.einsum("tjkx,tkxd->tjkd", G, bases[faces]).reshape(len(faces), 3, 6)
+    return J, (2 * faces[:, :, None] + np.arange(2)).reshape(len(faces), 6)
+
+
+def _gradient(J, unknowns, residual, n):
+    """J^T r, (2n,)."""
+    return np.bincount(unknowns.ravel(), weights=np.einsum("tri,tr->ti", J, residual).ravel(),
+                       minlength=2 * n)
+
+
+def vertex_ordering(faces, n):
+    """Reverse Cuthill-McKee order of the vertices along the mesh edges.
+
+    SuperLU's minimum-degree ordering is fast and fills little when started from a spatially
+    coherent order, and very slow from some (36 s instead of 2 s on a 41k-vertex icosphere).
+    """
+    a, b = faces.ravel(), np.roll(faces, -1, axis=1).ravel()
+    graph = sp.csr_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(n, n))
+    return reverse_cuthill_mckee(graph, symmetric_mode=True)
+
+
+class _NormalMatrixFactor:
+    """Sparse LU of J^T J + damping * diag(J^T J), assembled from the 6x6 blocks of the faces.
+
+    The matrix is symmetric positive definite, so SuperLU runs in symmetric mode without row
+    pivoting, on a minimum-degree ordering of A + A^T applied after ``order`` (a vertex order). A
+    tiny absolute term keeps the three rotations (the null space) nonsingular; the gradient has no
+    component along them, so they do not move.
+    """
+
+    def __init__(self, J, unknowns, n, damping, order):
+        self.perm = (2 * np.asarray(order)[:, None] + np.arange(2)).ravel()   # new -> old unknown
+        rank = np.empty_like(self.perm)
+        rank[self.perm] = np.arange(len(self.perm))
+        unknowns = rank[unknowns]
+        blocks = np.einsum("tri,trj->tij", J, J)
+        rows = np.broadcast_to(unknowns[:, :, None], blocks.shape).ravel()
+        cols = np.broadcast_to(unknowns[:, None, :], blocks.shape).ravel()
+        H = sp.csc_matrix((blocks.ravel(), (rows, cols)), shape=(2 * n, 2 * n))
+        diag = H.diagonal()
+        H = H + sp.diags(damping * diag + 1e-12 * diag.mean(), format="csc")
+        self.lu = splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options=dict(SymmetricMode=True))
+
+    def solve(self, rhs):
+        out = np.empty_like(rhs)
+        out[self.perm] = self.lu.solve(rhs[self.perm])
+        return out
+
+
+def angle_errors(positions, faces, angles):
+    """Max and RMS |angle measured from positions - solved angle| (radians)."""
+    err = spherical_angles(positions, faces) - angles
+    err = np.where(np.isfinite(err), err, np.inf)
+    return float(np.abs(err).max()), float(np.sqrt(np.mean(err ** 2)))
+
+
+def chord_mismatch(positions, edges, chords):
+    """Max relative |chord from positions - chord from the solved angles| over the edges."""
+    measured = np.linalg.norm(positions[edges[:, 0]] - positions[edges[:, 1]], axis=1)
+    return float(np.max(np.abs(measured - chords) / chords))
+
+
+# Largest angle residual (radians) at which a slowing simplified Gauss-Newton stops rather than pay for
+# another factorisation: two orders below the 1e-6 the pipeline promises, and just above the rounding
+# floor of meshes with tiny triangles (~3e-9 on a 50k random hull).
+GOOD_ENOUGH = 1e-8
+
+
+def correct(faces, angles, positions, max_iterations=20, tolerance=1e-13):
+    """Gauss-Newton on all corner-angle residuals, positions kept on the unit sphere.
+
+    Each vertex moves in its tangent plane and is retracted by normalising. The normal matrix is
+    factorised once and reused while steps keep shrinking the sum of squares tenfold (a simplified
+    Gauss-Newton; on a consistent problem the first two or three steps already gain several digits
+    each); it is refactorised at the current positions when progress slows, with more
+    Levenberg-Marquardt damping when a step fails. It stops when the largest residual is below
+    ``tolerance`` or a freshly linearised step no longer halves the sum of squares, which is where
+    rounding in the angles themselves (largest on tiny and sliver triangles) sets the floor.
+
+    Parameters
+    ----------
+    faces : (t, 3) int array
+        The triangles to fit (all of them, or those the walk has completed so far); only their
+        vertices move.
+    angles : (t, 3) array
+        Solved angles of these triangles.
+    positions : (n, 3) array
+        Starting positions (the walk's).
+    max_iterations : int
+        Most steps (each one residual, one gradient, one back-substitution).
+    tolerance : float
+        Largest angle residual (radians) that counts as converged.
+
+    Returns
+    -------
+    positions : (n, 3) array of unit vectors
+    stats : dict
+        ``iterations``, ``factorizations``.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import icosphere
+    >>> V, F = icosphere(2)
+    >>> rng = np.random.default_rng(0)
+    >>> nudged = V + 1e-4 * rng.normal(size=V.shape)
+    >>> X, stats = correct(F, spherical_angles(V, F), nudged)
+    >>> float(np.abs(spherical_angles(X, F) - spherical_angles(V, F)).max()) < 1e-12
+    True
+    """
+    used, F = np.unique(np.asarray(faces), return_inverse=True)
+    F = F.reshape(-1, 3)
+    n = len(used)
+    A = np.asarray(angles, float)
+    X = _unit(np.asarray(positions, float)[used])
+    r = spherical_angles(X, F) - A
+    cost = float(np.sum(r * r))
+    damping = 1e-10
+    lu = bases = None
+    fresh = False                     # is the factorisation from the current positions?
+    order = vertex_ordering(F, n)
+    iterations = factorizations = 0
+    while iterations < max_iterations and np.abs(r).max() > tolerance:
+        if lu is None:
+            bases = tangent_bases(X)
+            J, unknowns = _angle_jacobian(X, F, bases)
+            try:
+                lu = _NormalMatrixFactor(J, unknowns, n, damping, order)
+            except RuntimeError:      # numerically singular: damp harder
+                damping *= 100
+                if damping > 1e4:
+                    break
+                continue
+            factorizations += 1
+            fresh = True
+        else:
+            J, unknowns = _angle_jacobian(X, F, bases)
+        step = -lu.solve(_gradient(J, unknowns, r, n))
+        trial = _unit(X + np.einsum("nxd,nd->nx", bases, step.reshape(n, 2)))
+        r_trial = spherical_angles(trial, F) - A
+        cost_trial = float(np.sum(r_trial * r_trial))
+        iterations += 1
+        if cost_trial < cost:
+            X, r, cost_before, cost = trial, r_trial, cost, cost_trial
+            if fresh and cost > 0.5 * cost_before:
+                break                 # at the rounding floor
+            if not fresh and cost > 0.1 * cost_before:
+                if np.abs(r).max() <= GOOD_ENOUGH:
+                    break             # close enough not to pay for another factorisation
+                lu = None             # the reused linearisation has gone stale
+            fresh = False
+            continue
+        if fresh:
+            if cost_trial < 4 * cost or damping > 1e4:
+                break                 # a rounding-level wobble, or no step helps: stop here
+            damping *= 100            # the linear model is not trusted this far: shorten the step
+        lu = None
+    out = np.array(positions, float)
+    out[used] = X
+    return out, {"iterations": iterations, "factorizations": factorizations}
+
+
+def unfold(connectivity, angles, seed_face=None, average=True, correction=True, excess=None):
     """Vertex positions on the unit sphere that realise the solved angles.
 
     Parameters
@@ -101,67 +544,62 @@ def unfold(connectivity, angles, seed_face=None, excess=None):
     angles : (t, 3) array
         Solved spherical angles (they must satisfy (6)-(8)).
     seed_face : int, optional
-        First triangle to place; default :func:`central_face`.
+        First triangle to place; default :func:`central_face` among well-shaped faces with reliable
+        chords.
+    average : bool
+        Average the walk's placements of a vertex over the triangles that reach it (default), or use
+        the best-conditioned triangle only.
+    correction : bool
+        Run the Gauss-Newton correction after the walk, and the walk's own repairs (default).
     excess : (t,) array, optional
-        Solved excesses (more accurate than recomputing them from the angles).
+        Solved excesses; more accurate than recomputing them from the angles for tiny triangles.
 
     Returns
     -------
     positions : (n, 3) array of unit vectors
     info : dict
-        ``seed_face``, ``levels`` (breadth-first levels walked), ``edge_chord_mismatch`` (largest
-        relative disagreement of an edge's chord between its two triangles).
+        ``seed_face``; ``levels`` (breadth-first levels walked); ``walk_repairs`` (corrections run
+        during the walk, 0 on well-shaped meshes); ``edge_chord_mismatch`` (largest relative
+        disagreement of an edge's chord between its two triangles); for the walk's positions
+        (``walk_*``, before the final correction) and the returned ones (``corrected_*``):
+        ``max_angle_error`` and ``rms_angle_error`` (radians, against the solved angles) and
+        ``max_chord_mismatch`` (relative, against the chords of the solved angles, which for tiny
+        triangles are themselves uncertain); ``correction_iterations``,
+        ``correction_factorizations``; ``walk_s``, ``correction_s`` (seconds).
 
     Examples
     --------
-    >>> from sphere_nlp.shapes import octahedron
+    >>> from sphere_nlp.shapes import icosphere
     >>> from sphere_nlp.connectivity import build_connectivity
-    >>> V, F = octahedron()
-    >>> X, info = unfold(build_connectivity(F, 6), np.full((8, 3), np.pi / 2))
-    >>> bool(np.allclose(np.abs(X).max(1), 1))
+    >>> from sphere_nlp.certify import spherical_angles
+    >>> V, F = icosphere(2)
+    >>> X, info = unfold(build_connectivity(F, len(V)), spherical_angles(V, F))
+    >>> info["corrected_max_angle_error"] < 1e-12
     True
     """
     F = connectivity.faces
-    n = connectivity.n_vertices
-    chords, mismatch = edge_chords(connectivity, angles, excess)
-    # Lookup of chord by vertex pair through a sparse matrix (symmetric).
-    e = connectivity.edges
-    chord_of = sp.coo_matrix((np.r_[chords, chords], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                             shape=(n, n)).tocsr()
-
-    def chord(u, v):
-        return np.asarray(chord_of[u, v]).ravel()
-
-    seed = central_face(connectivity) if seed_face is None else int(seed_face)
-    a, b, c = F[seed]
-    A = np.asarray(angles, float)[seed]
-    positions = np.zeros((n, 3))
-    placed = np.zeros(n, bool)
-    # First triangle: a at the north pole, b along the meridian through +x, c by the angle at a.
-    ab = 2 * np.arcsin(min(chord([a], [b])[0] / 2, 1.0))
-    ac = 2 * np.arcsin(min(chord([a], [c])[0] / 2, 1.0))
-    positions[a] = [0, 0, 1]
-    positions[b] = [np.sin(ab), 0, np.cos(ab)]
-    positions[c] = [np.sin(ac) * np.cos(A[0]), np.sin(ac) * np.sin(A[0]), np.cos(ac)]
-    placed[[a, b, c]] = True
-
-    levels = 0
-    while not placed.all():
-        count = placed[F].sum(1)
-        frontier = np.flatnonzero(count == 2)
-        if len(frontier) == 0:
-            raise RuntimeError("unfolding walk stalled: the triangle graph is not connected")
-        Ff = F[frontier]
-        missing = np.argmin(placed[Ff], axis=1)          # local index of the unplaced vertex
-        rows = np.arange(len(frontier))
-        w = Ff[rows, missing]
-        u = Ff[rows, (missing + 1) % 3]                  # (u, v, w) is in the face's cyclic order
-        v = Ff[rows, (missing + 2) % 3]
-        angle_at_u = np.asarray(angles, float)[frontier, (missing + 1) % 3]
-        w, first = np.unique(w, return_index=True)      # one triangle per new vertex
-        u, v, angle_at_u = u[first], v[first], angle_at_u[first]
-        # Seen from outside, w lies counter-clockwise of the arc u -> v by the angle at u.
-        positions[w] = _place_by_angle(positions[u], positions[v], angle_at_u, chord(u, w))
-        placed[w] = True
-        levels += 1
-    return positions, {"seed_face": seed, "levels": levels, "edge_chord_mismatch": mismatch}
+    A = np.asarray(angles, float)
+    chords, mismatch = edge_chords(connectivity, A, excess)
+    if seed_face is None:
+        # The seed's chords set the scale of the whole walk: take a well-shaped, reliable one.
+        reliable = _edge_mismatch(connectivity, A, excess)[corner_edges(connectivity)].reshape(-1, 3).max(1) \
+            <= RELIABLE_CHORD_MISMATCH
+        seed = central_face(connectivity, reliable & (np.sin(A).min(1) >= WELL_CONDITIONED_SIN))
+    else:
+        seed = int(seed_face)
+    clock = time.perf_counter()
+    positions, levels, repairs = walk(connectivity, A, seed, chords=chords, average=average,
+                                      repair=correction, excess=excess)
+    info = {"seed_face": seed, "levels": levels, "walk_repairs": repairs, "edge_chord_mismatch": mismatch,
+            "walk_s": time.perf_counter() - clock}
+    info["walk_max_angle_error"], info["walk_rms_angle_error"] = angle_errors(positions, F, A)
+    info["walk_max_chord_mismatch"] = chord_mismatch(positions, connectivity.edges, chords)
+    if correction:
+        clock = time.perf_counter()
+        positions, stats = correct(F, A, positions)
+        info["correction_s"] = time.perf_counter() - clock
+        info["correction_iterations"] = stats["iterations"]
+        info["correction_factorizations"] = stats["factorizations"]
+        info["corrected_max_angle_error"], info["corrected_rms_angle_error"] = angle_errors(positions, F, A)
+        info["corrected_max_chord_mismatch"] = chord_mismatch(positions, connectivity.edges, chords)
+    return positions, info

@@ -1,0 +1,184 @@
+"""Unfolding without drift: the walk's error, the correction, slivers, noisy angles, the report.
+
+The NLP cannot run at 10k-50k vertices in a test, so the inputs are spherical meshes whose angles are
+known: points on the unit sphere, triangulated, angles measured from them (optionally perturbed to
+emulate a solver's tolerance). The unfolded positions must reproduce those angles.
+"""
+
+import time
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+
+import sphere_nlp
+from sphere_nlp.certify import certify, spherical_angles
+from sphere_nlp.connectivity import build_connectivity
+from sphere_nlp.shapes import cylinder, icosphere
+from sphere_nlp.unfold import angle_gradients, central_face, correct, tangent_bases, unfold, walk
+
+
+def hull_mesh(points):
+    """Convex hull of points on the unit sphere, faces oriented outward."""
+    faces = ConvexHull(points).simplices
+    a, b, c = (points[faces[:, k]] for k in range(3))
+    inward = np.einsum("ij,ij->i", a, np.cross(b, c)) < 0
+    faces[inward] = faces[inward][:, ::-1]
+    return points, faces
+
+
+def random_sphere_mesh(n, seed=0):
+    """Convex hull of n random unit vectors: a Delaunay mesh with many thin triangles."""
+    points = np.random.default_rng(seed).normal(size=(n, 3))
+    return hull_mesh(points / np.linalg.norm(points, axis=1, keepdims=True))
+
+
+def jittered_icosphere(subdivisions, jitter=0.08, seed=0):
+    """Icosphere with vertices moved along the sphere by ``jitter`` times the mean edge length."""
+    V, F = icosphere(subdivisions)
+    rng = np.random.default_rng(seed)
+    V = V + jitter * np.sqrt(4 * np.pi / len(F)) * rng.normal(size=V.shape)
+    return V / np.linalg.norm(V, axis=1, keepdims=True), F
+
+
+def needle_mesh(subdivisions, count, gap, seed=0):
+    """Jittered icosphere plus ``count`` twin points at ``gap`` times the edge length from a vertex.
+
+    Each twin makes a short edge whose triangles have an angle of about ``gap`` radians opposite it.
+    """
+    V, _ = jittered_icosphere(subdivisions, seed=seed)
+    rng = np.random.default_rng(seed + 1)
+    h = np.sqrt(2 * np.pi / len(V))
+    pick = rng.choice(len(V), count, replace=False)
+    step = rng.normal(size=(count, 3))
+    step -= np.einsum("ij,ij->i", step, V[pick])[:, None] * V[pick]
+    twins = V[pick] + gap * h * step / np.linalg.norm(step, axis=1, keepdims=True)
+    return hull_mesh(np.vstack([V, twins / np.linalg.norm(twins, axis=1, keepdims=True)]))
+
+
+def exact_problem(V, F, noise=0.0, seed=3):
+    """Connectivity and the angles of the spherical mesh, relatively perturbed by up to ``noise``."""
+    angles = spherical_angles(V, F)
+    assert (angles > 0).all()
+    if noise:
+        angles = angles * (1 + noise * np.random.default_rng(seed).uniform(-1, 1, angles.shape))
+    return build_connectivity(F, len(V)), angles
+
+
+def max_angle_error(X, F, angles):
+    return float(np.abs(spherical_angles(X, F) - angles).max())
+
+
+def test_angle_gradients_match_finite_differences():
+    V, F = jittered_icosphere(1, jitter=0.3)
+    G, T = angle_gradients(V, F), tangent_bases(V)
+    rng = np.random.default_rng(1)
+    step = 1e-7
+    for _ in range(20):
+        face, slot, direction = rng.integers(len(F)), rng.integers(3), rng.integers(2)
+        vertex = F[face, slot]
+        moved = [V.copy(), V.copy()]
+        for sign, X in zip((1, -1), moved):
+            X[vertex] = V[vertex] + sign * step * T[vertex][:, direction]
+            X[vertex] /= np.linalg.norm(X[vertex])
+        numeric = (spherical_angles(moved[0], F)[face] - spherical_angles(moved[1], F)[face]) / (2 * step)
+        np.testing.assert_allclose(G[face, :, slot] @ T[vertex][:, direction], numeric, atol=1e-7)
+
+
+def test_plain_walk_drifts_with_depth_and_correction_removes_it():
+    # The paper's caveat, measured: with exact angles the plain breadth-first walk's error grows with
+    # its depth (about 30x per doubling); the Gauss-Newton correction takes it to rounding level.
+    walk_error = {}
+    for subdivisions in (3, 5):
+        V, F = jittered_icosphere(subdivisions)
+        connectivity, angles = exact_problem(V, F)
+        X, levels, _ = walk(connectivity, angles, central_face(connectivity), repair=False)
+        walk_error[subdivisions] = max_angle_error(X, F, angles)
+    assert len(V) == 10242
+    assert walk_error[5] > 1e-9
+    assert walk_error[5] > 100 * walk_error[3]
+
+    start = time.perf_counter()
+    X, info = unfold(connectivity, angles)
+    elapsed = time.perf_counter() - start
+    assert info["walk_repairs"] == 0                     # well-shaped: the walk needs no repair
+    assert info["walk_max_angle_error"] == pytest.approx(walk_error[5])
+    assert info["corrected_max_angle_error"] < 1e-11
+    assert info["corrected_max_angle_error"] < 1e-3 * info["walk_max_angle_error"]
+    assert info["corrected_rms_angle_error"] < info["walk_rms_angle_error"]
+    assert max_angle_error(X, F, angles) == pytest.approx(info["corrected_max_angle_error"])
+    assert certify(X, F).valid
+    assert elapsed < 10
+
+
+@pytest.mark.parametrize("average", [True, False])
+def test_needle_triangles(average):
+    # Twins at 1e-3 of an edge length: angles down to ~0.03 degrees, some near 135 degrees, and
+    # triangles far smaller than the rest, whose excess carries no usable scale.
+    V, F = needle_mesh(4, count=100, gap=1e-3)
+    connectivity, angles = exact_problem(V, F, noise=1e-9)
+    assert np.degrees(angles.min()) < 0.1
+    X, info = unfold(connectivity, angles, average=average)
+    assert info["corrected_max_angle_error"] < 1e-7
+    assert info["corrected_max_angle_error"] <= info["walk_max_angle_error"]
+    assert certify(X, F).valid
+
+
+@pytest.mark.parametrize("noise", [1e-9, 1e-7])
+def test_noisy_angles_on_random_mesh(noise):
+    # Angles off by up to `noise` (relative) cannot all be met; the fit lands at the noise level.
+    V, F = random_sphere_mesh(5000, seed=2)
+    connectivity, angles = exact_problem(V, F, noise=noise)
+    X, info = unfold(connectivity, angles)
+    assert info["corrected_max_angle_error"] < 10 * noise
+    assert info["corrected_rms_angle_error"] < 2 * noise
+    assert certify(X, F).valid
+
+
+def test_correct_fits_a_sub_mesh_and_leaves_other_vertices_alone():
+    V, F = jittered_icosphere(2)
+    angles = spherical_angles(V, F)
+    rng = np.random.default_rng(4)
+    start = V + 1e-4 * rng.normal(size=V.shape)
+    part = np.arange(len(F) // 2)
+    X, stats = correct(F[part], angles[part], start)
+    assert max_angle_error(X, F[part], angles[part]) < 1e-12
+    untouched = np.setdiff1d(np.arange(len(V)), F[part])
+    np.testing.assert_array_equal(X[untouched], start[untouched])
+    assert stats["factorizations"] >= 1
+
+
+def test_without_correction_the_walk_is_returned():
+    V, F = jittered_icosphere(3)
+    connectivity, angles = exact_problem(V, F)
+    X, info = unfold(connectivity, angles, correction=False, seed_face=0)
+    assert info["seed_face"] == 0
+    assert "corrected_max_angle_error" not in info
+    assert max_angle_error(X, F, angles) == pytest.approx(info["walk_max_angle_error"])
+
+
+def test_report_has_unfold_errors_before_and_after_correction():
+    report = sphere_nlp.parameterize(cylinder(), target="equal-angles").report()
+    unfold_report = report["unfold"]
+    for stage in ("walk", "corrected"):
+        for key in ("max_angle_error", "rms_angle_error", "max_chord_mismatch"):
+            assert isinstance(unfold_report["%s_%s" % (stage, key)], float)
+    assert unfold_report["corrected_max_angle_error"] <= unfold_report["walk_max_angle_error"]
+    assert report["max_angle_error"] == pytest.approx(unfold_report["corrected_max_angle_error"], abs=1e-15)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mesh", ["random", "needles"])
+def test_large_meshes_reach_the_angles(mesh):
+    # >= 50k vertices: a random hull (angles down to 0.017 degrees, excesses down to 1e-8) with
+    # angles perturbed at a solver's tolerance, and a jittered icosphere with 10k needles.
+    if mesh == "random":
+        V, F = random_sphere_mesh(50000)
+        connectivity, angles = exact_problem(V, F, noise=1e-10)
+    else:
+        V, F = needle_mesh(6, count=10000, gap=1e-3)
+        connectivity, angles = exact_problem(V, F)
+    assert len(V) >= 50000
+    X, info = unfold(connectivity, angles)
+    assert info["corrected_max_angle_error"] < 1e-7
+    assert certify(X, F).valid
