@@ -171,8 +171,8 @@ def build_connectivity(faces, n_vertices, vertex_names=None):
     if n_comp > 1:
         sizes = np.sort(np.bincount(face_component))[::-1]
         shown = ", ".join(str(k) for k in sizes[:5]) + (", ..." if n_comp > 5 else "")
-        raise errors.ComponentsError("mesh has %d connected components (of %s faces): it must have exactly "
-                                     "one" % (n_comp, shown))
+        raise errors.ComponentsError("mesh has %d connected components (faces per component: %s): it "
+                                     "must have exactly one" % (n_comp, shown))
 
     chi = n_vertices - m + t
     if chi != 2:
