@@ -18,6 +18,10 @@ from .targets import MODES, make_targets
 from .unfold import unfold
 
 
+# IPOPT statuses of a finished solve; anything else (limits, failures) is not a result.
+SOLVED_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+
+
 def peak_rss_mb():
     """Peak resident memory of this process so far, in MB."""
     kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -106,10 +110,21 @@ class SphericalParameterization:
                    self.timings.get("total", float("nan"))))
 
     def write(self, path):
-        """Write the sphere mesh (OFF, OBJ or PLY by extension). Refuses an uncertified result."""
+        """Write the sphere mesh (OFF, OBJ or PLY by extension).
+
+        Refuses (raising :class:`SolveError` or :class:`CertificateError`, writing nothing) a result
+        whose solve stopped short, e.g. at an iteration or time limit, even if its positions happen to
+        pass the certificate, and any uncertified result.
+        """
+        if self.status not in SOLVED_STATUSES:
+            raise errors.SolveError("refusing to write the result of a failed solve (IPOPT status %s)"
+                                    % self.status, self)
         if not self.certificate.valid:
             raise errors.CertificateError("refusing to write an uncertified sphere: "
                                           + self.certificate.reason, self)
+        if not self.success:
+            raise errors.SolveError("refusing to write: the solve ended outside the constraints (%s)"
+                                    % self.status, self)
         write_mesh(path, self.vertices, self.faces)
 
     def save_solution(self, path):
