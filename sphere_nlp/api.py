@@ -22,6 +22,15 @@ from .unfold import unfold
 SOLVED_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 
 
+def solve_failure_message(status, iterations):
+    """One line saying why an angle solve is not a result (IPOPT's status, or the inequalities)."""
+    if status in SOLVED_STATUSES:
+        # IPOPT converged, but to angles with a zero or negative angle or excess (violating (3)-(5)).
+        return ("the angle solve ended outside the inequality constraints (3)-(5): a zero or negative "
+                "angle or excess (IPOPT status %s after %d iterations)" % (status, iterations))
+    return "the angle solve failed (IPOPT status %s after %d iterations)" % (status, iterations)
+
+
 def peak_rss_mb():
     """Peak resident memory of this process so far, in MB."""
     kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -60,7 +69,10 @@ class SphericalParameterization:
         Target mode (or "custom").
     formulation : str
     success : bool
-        True when IPOPT succeeded and the certificate is valid.
+        True when the solve succeeded (``solved``) and the certificate is valid.
+    solved : bool
+        True when IPOPT finished (``status`` is Solve_Succeeded or Solved_To_Acceptable_Level) with
+        angles and excesses that satisfy the inequalities (3)-(5).
     status : str
         IPOPT's return status of the last stage.
     iterations : int
@@ -98,6 +110,7 @@ class SphericalParameterization:
     max_angle_error: float
     certificate: Certificate
     vertex_map: np.ndarray = None
+    solved: bool = False
     stages: list = field(default_factory=list)
     timings: dict = field(default_factory=dict)
     repairs: list = field(default_factory=list)
@@ -116,15 +129,12 @@ class SphericalParameterization:
         whose solve stopped short, e.g. at an iteration or time limit, even if its positions happen to
         pass the certificate, and any uncertified result.
         """
-        if self.status not in SOLVED_STATUSES:
-            raise errors.SolveError("refusing to write the result of a failed solve (IPOPT status %s)"
-                                    % self.status, self)
+        if not self.solved:
+            raise errors.SolveError("refusing to write: "
+                                    + solve_failure_message(self.status, self.iterations), self)
         if not self.certificate.valid:
             raise errors.CertificateError("refusing to write an uncertified sphere: "
                                           + self.certificate.reason, self)
-        if not self.success:
-            raise errors.SolveError("refusing to write: the solve ended outside the constraints (%s)"
-                                    % self.status, self)
         write_mesh(path, self.vertices, self.faces)
 
     def save_solution(self, path):
@@ -293,12 +303,11 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         target=targets.mode, formulation=formulation, success=solution.success and certificate.valid,
         status=solution.status, iterations=solution.iterations, objective=solution.objective,
         max_constraint_violation=solution.max_constraint_violation, max_angle_error=angle_error,
-        certificate=certificate, vertex_map=prepared.vertex_map, stages=solution.stages, timings=timings,
-        repairs=prepared.repairs,
+        certificate=certificate, vertex_map=prepared.vertex_map, solved=solution.success,
+        stages=solution.stages, timings=timings, repairs=prepared.repairs,
         unfold_info=unfold_info, peak_rss_mb=peak_rss_mb())
     if check and not solution.success:
-        raise errors.SolveError("the angle solve failed: IPOPT status %s after %d iterations"
-                                % (solution.status, solution.iterations), result)
+        raise errors.SolveError(solve_failure_message(solution.status, solution.iterations), result)
     if check and not certificate.valid:
         raise errors.CertificateError("the sphere failed its certificate: " + certificate.reason, result)
     return result

@@ -86,7 +86,7 @@ class Progress:
 
 
 def run(args):
-    from .api import SOLVED_STATUSES, parameterize
+    from .api import parameterize, solve_failure_message
 
     input_path = Path(args.input)
     output = Path(args.output) if args.output else Path(input_path.name.split(".")[0] + ".sphere.off")
@@ -102,14 +102,11 @@ def run(args):
     if args.report:
         result.write_report(args.report)
     if not result.success:
-        if result.status not in SOLVED_STATUSES:
-            raise errors.SolveError("the angle solve failed (IPOPT status %s after %d iterations); nothing "
-                                    "written" % (result.status, result.iterations))
-        if not result.certificate.valid:
-            raise errors.CertificateError("the sphere failed its certificate (%s; IPOPT status %s); nothing "
-                                          "written" % (result.certificate.reason, result.status))
-        raise errors.SolveError("the angle solve ended outside the inequality constraints (IPOPT status "
-                                "%s); nothing written" % result.status)
+        if not result.solved:
+            raise errors.SolveError(solve_failure_message(result.status, result.iterations)
+                                    + "; nothing written")
+        raise errors.CertificateError("the sphere failed its certificate (%s; IPOPT status %s); nothing "
+                                      "written" % (result.certificate.reason, result.status))
     result.write(output)
     if args.save_solution:
         result.save_solution(args.save_solution)

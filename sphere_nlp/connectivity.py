@@ -195,7 +195,8 @@ def orient_consistently(faces):
     """Flip faces so that every edge is traversed once in each direction.
 
     Orientation is propagated along a breadth-first spanning tree of each component; the winding
-    of the majority of its faces is kept, so as few faces as possible are flipped. Edges must already be manifold (two faces each).
+    of the majority of its faces is kept, so as few faces as possible are flipped. Edges must already
+    be manifold (two faces each).
 
     Returns
     -------

@@ -121,9 +121,9 @@ def check_arrays(vertices, faces):
                                     "triangles" % (repeated.sum(), i, faces[i].tolist()))
     bad = ~np.isfinite(vertices).all(axis=1)
     if bad.any():
-        raise errors.NonFiniteCoordinatesError("%d vertex(es) have non-finite coordinates (e.g. vertex %d = %s)"
-                                               % (bad.sum(), np.flatnonzero(bad)[0],
-                                                  vertices[np.flatnonzero(bad)[0]].tolist()))
+        first = np.flatnonzero(bad)[0]
+        raise errors.NonFiniteCoordinatesError("%d vertex(es) have non-finite coordinates (e.g. vertex %d = "
+                                               "%s)" % (bad.sum(), first, vertices[first].tolist()))
     return vertices, faces
 
 
@@ -257,8 +257,8 @@ def prepare_mesh(vertices, faces, weld_tolerance=WELD_TOLERANCE):
             welded[:, 2] == welded[:, 0])
         if collapsed.any():
             i = int(np.flatnonzero(collapsed)[0])
-            raise errors.DegenerateFaceError("%d face(s) have corners at the same position (e.g. face %d = %s, "
-                                             "whose vertices coincide within %g of the bounding-box "
+            raise errors.DegenerateFaceError("%d face(s) have corners at the same position (e.g. face %d = "
+                                             "%s, whose vertices coincide within %g of the bounding-box "
                                              "diagonal)" % (collapsed.sum(), i, faces[i].tolist(),
                                                             weld_tolerance)) from None
         kept, compact_faces, vertex_map = _compact(representative, faces, n_input)

@@ -118,7 +118,9 @@ def random_genus0_mesh(n_points, seed, n_flips=None, jitter=0.3, min_angle=0.02)
     new_index = np.cumsum(keep) - 1
     P, F = P[keep], new_index[F]
     normal = np.cross(P[F[:, 1]] - P[F[:, 0]], P[F[:, 2]] - P[F[:, 0]])
-    inward = np.einsum("ij,ij->i", normal, P[F].mean(axis=1)) < 0
+    # Outward = away from the mean of the points, which is inside the hull (the origin need not be,
+    # when few points happen to lie in one hemisphere).
+    inward = np.einsum("ij,ij->i", normal, P[F].mean(axis=1) - P.mean(axis=0)) < 0
     F[inward] = F[inward][:, ::-1]
 
     moved = P * rng.uniform(1 - jitter, 1 + jitter, size=(len(P), 1))

@@ -134,7 +134,8 @@ FILE_DEFECTS = {
     "obj-quad": ("mesh.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n", errors.UnreadableMeshError,
                  ["not triangles", "4 corners"]),
     "obj-index-out-of-range": ("mesh.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nf 1 2 3\nf 1 3 7\n",
-                               errors.FaceIndexError, ["line 5", "face 1 refers to a vertex that does not exist"]),
+                               errors.FaceIndexError,
+                               ["line 5", "face 1 refers to a vertex that does not exist"]),
     "obj-no-faces": ("mesh.obj", "v 0 0 0\nv 1 0 0\n", errors.UnreadableMeshError, ["no triangles"]),
     "obj-garbage": ("mesh.obj", "<html>not found</html>\n", errors.UnreadableMeshError, ["not an OBJ file"]),
     "ply-truncated": ("mesh.ply", "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\n"
