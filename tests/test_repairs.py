@@ -136,3 +136,19 @@ def test_sliver_of_006_degrees_is_accepted(target):
     result = sphere_nlp.parameterize((V, F), target=target)
     assert result.certificate.valid
     assert np.degrees(result.target_angles.min()) == pytest.approx(0.06) or target == "equal-angles"
+
+
+def test_stl_soup_file_is_welded_from_the_cli(tmp_path, capsys):
+    import trimesh
+
+    V, F = meshgen.ellipsoid(1)
+    source = tmp_path / "ellipsoid.stl"
+    source.write_bytes(trimesh.Trimesh(V, F, process=False).export(file_type="stl"))
+    out = tmp_path / "sphere.ply"
+    assert main([str(source), "-o", str(out), "--save-solution", str(tmp_path / "s.npz")]) == 0
+    stderr = capsys.readouterr().err
+    assert "repaired: merged %d duplicate vertex(es) into %d" % (3 * len(F) - len(V), len(V)) in stderr
+    X, F_out = load_mesh(out)
+    assert len(X) == len(V) and certify(X, F_out).valid
+    vertex_map = np.load(tmp_path / "s.npz")["vertex_map"]
+    np.testing.assert_array_equal(F_out.ravel(), vertex_map)     # STL vertex k is corner k
