@@ -43,6 +43,14 @@ def two_tetrahedra(shared_vertex=False):
     return np.vstack([V, mirrored]), np.vstack([F, F2])
 
 
+def projective_plane():
+    """The 6-vertex triangulation of the real projective plane: closed, manifold, not orientable."""
+    V, _ = icosphere(0)
+    F = np.array([[1, 2, 3], [1, 3, 4], [1, 4, 5], [1, 5, 6], [1, 6, 2], [2, 3, 5], [3, 4, 6],
+                  [4, 5, 2], [5, 6, 3], [6, 2, 4]]) - 1
+    return V[:6] * [1.0, 1.3, 0.8], F
+
+
 def pinched_sphere():
     """An icosphere with two far-apart vertices identified: one component, one pinched vertex."""
     V, F = icosphere(1)

@@ -57,6 +57,7 @@ ARRAY_DEFECTS = {
     "two-components": (meshgen.two_tetrahedra, errors.ComponentsError,
                        ["2 connected components", "4, 4"]),
     "genus-1": (meshgen.torus, errors.GenusError, ["genus 1"]),
+    "non-orientable": (meshgen.projective_plane, errors.OrientationError, ["not orientable"]),
     "zero-area-face": (lambda: meshgen.flattened_octahedron(0.0), errors.DegenerateFaceError,
                        ["1 degenerate (zero-area) face(s)", "face 0"]),
     "near-zero-area-face": (lambda: meshgen.flattened_octahedron(1e-12), errors.DegenerateFaceError,
