@@ -34,7 +34,7 @@ TARGETS = ("equal-angles", "original-angles")
 # those IPOPT cannot solve may take thousands of slow (20-40 ms) iterations to give up. The default run
 # caps them to stay fast; hitting a cap is a clean SolveError like any other failure, so the property
 # tested is the same, only more failures are tolerated. The slow suite uses IPOPT's own defaults.
-DEFAULT_LIMITS = dict(max_iter=300, max_time=1.0)
+DEFAULT_LIMITS = dict(max_iter=200, max_time=0.5)
 SLOW_LIMITS = dict(max_iter=3000, max_time=120.0)
 
 
