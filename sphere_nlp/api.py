@@ -172,17 +172,21 @@ class SphericalParameterization:
 
 
 def _as_arrays(mesh):
-    """(vertices, faces) from a path, a trimesh.Trimesh, or a (V, F) pair."""
+    """(vertices, faces) from a path, a trimesh.Trimesh, or a (V, F) pair.
+
+    Arrays are passed on as given: :func:`~sphere_nlp.repair.check_arrays` converts them and reports
+    malformed ones (ragged face lists, wrong shapes) as input errors.
+    """
     if isinstance(mesh, (str, Path)):
         return load_mesh(mesh)
     if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
-        return np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
+        return mesh.vertices, mesh.faces
     try:
         vertices, faces = mesh
     except (TypeError, ValueError):
         raise errors.UsageError("mesh must be a file path, a trimesh.Trimesh or a (vertices, faces) pair") \
             from None
-    return np.asarray(vertices, float), np.asarray(faces)
+    return vertices, faces
 
 
 def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weight=None,

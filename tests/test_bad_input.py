@@ -212,6 +212,10 @@ def test_api_rejects_bad_arrays():
         sphere_nlp.parameterize((V, F[:, :2]))
     with pytest.raises(errors.UnreadableMeshError, match=r"\(n, 3\)"):
         sphere_nlp.parameterize((V[:, :2], F))
+    with pytest.raises(errors.FaceIndexError, match="ragged"):
+        sphere_nlp.parameterize((V, [[0, 1, 2], [0, 1, 2, 3]]))
+    with pytest.raises(errors.UnreadableMeshError, match="numbers"):
+        sphere_nlp.parameterize(([["a", "b", "c"]], F))
     with pytest.raises(errors.UsageError):
         sphere_nlp.parameterize(42)
     with pytest.raises(errors.UsageError, match="unknown target"):
