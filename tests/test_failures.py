@@ -1,5 +1,6 @@
 """Failures never damage files: atomic writes, solver limits, Ctrl-C while writing."""
 
+import json
 import os
 import re
 
@@ -35,13 +36,17 @@ def leftovers(directory):
 
 def test_max_iter_is_a_failure_with_ipopt_status_and_no_output(tmp_path, capsys, ellipsoid_file):
     out = tmp_path / "sphere.off"
-    status, stderr = run_cli(capsys, ellipsoid_file, "-o", out, "--max-iter", "1", "-q")
+    report = tmp_path / "report.json"
+    status, stderr = run_cli(capsys, ellipsoid_file, "-o", out, "--max-iter", "1", "-q", "--report", report)
     assert status == 1
     lines = stderr.strip().splitlines()
     assert len(lines) == 1 and re.fullmatch(r"sphere_nlp: error: the angle solve failed \(IPOPT status "
                                             r"Maximum_Iterations_Exceeded after \d+ iterations\); nothing "
                                             r"written", lines[0]), stderr
     assert not out.exists() and leftovers(tmp_path) == []
+    # The report is still written, complete, and says why: it documents the failure.
+    written = json.loads(report.read_text())
+    assert written["success"] is False and written["status"] == "Maximum_Iterations_Exceeded"
 
 
 def test_max_time_is_a_failure_with_ipopt_status(tmp_path, capsys, ellipsoid_file):
