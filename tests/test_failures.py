@@ -126,6 +126,21 @@ def test_ctrl_c_while_writing_leaves_nothing(existing, tmp_path, capsys, monkeyp
     assert leftovers(tmp_path) == []
 
 
+def test_ctrl_c_during_the_solve_leaves_the_existing_output(tmp_path, capsys, monkeypatch, ellipsoid_file):
+    import sphere_nlp.api
+
+    out = tmp_path / "sphere.off"
+    out.write_text(PRECIOUS)
+
+    def interrupted_solve(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sphere_nlp.api, "solve_angles", interrupted_solve)
+    status, stderr = run_cli(capsys, ellipsoid_file, "-o", out, "-q")
+    assert status == 130 and stderr.strip() == "sphere_nlp: interrupted; nothing written"
+    assert out.read_text() == PRECIOUS and leftovers(tmp_path) == []
+
+
 def test_ctrl_c_just_before_the_rename_leaves_nothing(tmp_path, capsys, monkeypatch, ellipsoid_file):
     out = tmp_path / "sphere.off"
 
