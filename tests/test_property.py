@@ -89,8 +89,13 @@ def check_certified_or_clean_failure(mesh_parameters, target, limits):
 # certified-or-clean when the solver changes):
 # * IPOPT converges, but to angles with a zero excess: the inequality stage returns the same point.
 # * IPOPT stops at Solved_To_Acceptable_Level with 3 flipped triangles, which the certificate catches.
+# * IPOPT's Solve_Succeeded with all constraints met (violation 4e-12) but one excess at 2e-13: the
+#   unfolding cannot close (edge chords mismatch by 0.9) and the certificate finds 6 flipped triangles.
+#   (The log-chord formulation solves this mesh.)
 @example(mesh=(18, 195197, 7, 0.0), target="equal-angles")
 @example(mesh=(12, 12, 12, 0.1), target="original-angles")
+@example(mesh=(8, 4758992, 8, 0.1), target="original-angles")
+@example(mesh=(8, 1001, 8, 0.1), target="original-angles")
 @settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(mesh=random_meshes(), target=st.sampled_from(TARGETS))
 def test_random_genus0_meshes_certified_or_clean_failure(mesh, target):
