@@ -33,7 +33,8 @@ TARGETS = ("equal-angles", "original-angles")
 # IPOPT limits per stage. Most random meshes solve in a few dozen iterations and well under a second;
 # those IPOPT cannot solve may take thousands of slow (20-40 ms) iterations to give up. The default run
 # caps them to stay fast; hitting a cap is a clean SolveError like any other failure, so the property
-# tested is the same, only more failures are tolerated. The slow suite uses IPOPT's own defaults.
+# tested is the same, only more failures are tolerated. The slow suite uses the package's default
+# iteration limit (3000) with a 120 s safety cap per stage.
 DEFAULT_LIMITS = dict(max_iter=200, max_time=0.5)
 SLOW_LIMITS = dict(max_iter=3000, max_time=120.0)
 
