@@ -10,12 +10,25 @@ import numpy as np
 
 from . import errors
 from .certify import Certificate, certify, spherical_angles
-from .connectivity import validate_mesh
+from .repair import prepare_mesh
 from .mesh_io import check_mesh_path, load_mesh, write_json, write_mesh, write_npz
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS
 from .solve import solve_angles
 from .targets import MODES, make_targets
 from .unfold import unfold
+
+
+# IPOPT statuses of a finished solve; anything else (limits, failures) is not a result.
+SOLVED_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+
+
+def solve_failure_message(status, iterations):
+    """One line saying why an angle solve is not a result (IPOPT's status, or the inequalities)."""
+    if status in SOLVED_STATUSES:
+        # IPOPT converged, but to angles with a zero or negative angle or excess (violating (3)-(5)).
+        return ("the angle solve ended outside the inequality constraints (3)-(5): a zero or negative "
+                "angle or excess (IPOPT status %s after %d iterations)" % (status, iterations))
+    return "the angle solve failed (IPOPT status %s after %d iterations)" % (status, iterations)
 
 
 def peak_rss_mb():
@@ -28,14 +41,24 @@ def peak_rss_mb():
 class SphericalParameterization:
     """Everything a run produced: positions, angles, status, statistics and certificate.
 
+    Vertex numbering: ``vertices``, ``faces`` and ``input_vertices`` use the *repaired* vertex set.
+    When no vertex was merged or dropped (the usual case) it is the input's, in input order. Otherwise
+    the input's order is kept with unreferenced vertices removed and each group of coincident vertices
+    represented by its lowest-numbered member; ``vertex_map[i]`` is the row of ``vertices`` that input
+    vertex ``i`` became (-1 if it was dropped), so ``result.vertices[result.vertex_map[i]]`` is where
+    input vertex ``i`` went. Faces are never removed or reordered: ``faces[i]`` is input face ``i``
+    in the repaired numbering (with its winding reversed if it was re-oriented; see ``repairs``).
+
     Attributes
     ----------
     vertices : (n, 3) array
-        Positions on the unit sphere, one per input vertex, in input order.
+        Positions on the unit sphere, one per repaired vertex.
     faces : (t, 3) int array
-        The triangles (as validated; see ``repairs``).
+        The triangles, in the repaired numbering, consistently oriented.
     input_vertices : (n, 3) array
-        The input positions.
+        The input positions of the repaired vertices (input coordinates, not normalised).
+    vertex_map : (n_input,) int array
+        Row of ``vertices`` for each input vertex, -1 for a dropped (unreferenced) vertex.
     angles : (t, 3) array
         Solved spherical angles; ``angles[i, j]`` is at vertex ``faces[i, j]``.
     excess : (t,) array
@@ -46,7 +69,10 @@ class SphericalParameterization:
         Target mode (or "custom").
     formulation : str
     success : bool
-        True when IPOPT succeeded and the certificate is valid.
+        True when the solve succeeded (``solved``) and the certificate is valid.
+    solved : bool
+        True when IPOPT finished (``status`` is Solve_Succeeded or Solved_To_Acceptable_Level) with
+        angles and excesses that satisfy the inequalities (3)-(5).
     status : str
         IPOPT's return status of the last stage.
     iterations : int
@@ -61,7 +87,8 @@ class SphericalParameterization:
     timings : dict
         Seconds per stage: load, build, solve, unfold, certify, total.
     repairs : list of str
-        Repairs made to the input.
+        Repairs made to the input, one line each (merged or dropped vertices, flipped faces,
+        normalised coordinates).
     unfold_info : dict
         Statistics of :func:`~sphere_nlp.unfold.unfold`: the walk's depth (``levels``) and in-walk
         repairs, and before (``walk_*``) and after (``corrected_*``) the Gauss-Newton correction the
@@ -86,6 +113,8 @@ class SphericalParameterization:
     max_constraint_violation: float
     max_angle_error: float
     certificate: Certificate
+    vertex_map: np.ndarray = None
+    solved: bool = False
     stages: list = field(default_factory=list)
     timings: dict = field(default_factory=dict)
     repairs: list = field(default_factory=list)
@@ -98,21 +127,31 @@ class SphericalParameterization:
                    self.timings.get("total", float("nan"))))
 
     def write(self, path):
-        """Write the sphere mesh (OFF, OBJ or PLY by extension). Refuses an uncertified result."""
+        """Write the sphere mesh (OFF, OBJ or PLY by extension).
+
+        Refuses (raising :class:`SolveError` or :class:`CertificateError`, writing nothing) a result
+        whose solve stopped short, e.g. at an iteration or time limit, even if its positions happen to
+        pass the certificate, and any uncertified result.
+        """
+        if not self.solved:
+            raise errors.SolveError("refusing to write: "
+                                    + solve_failure_message(self.status, self.iterations), self)
         if not self.certificate.valid:
             raise errors.CertificateError("refusing to write an uncertified sphere: "
                                           + self.certificate.reason, self)
         write_mesh(path, self.vertices, self.faces)
 
     def save_solution(self, path):
-        """Write vertices, faces, angles, excess and the targets to an .npz archive."""
+        """Write vertices, faces, angles, excess, the targets and the vertex map to an .npz archive."""
         write_npz(path, vertices=self.vertices, faces=self.faces, angles=self.angles, excess=self.excess,
-                  target_angles=self.target_angles, target_excess=self.target_excess)
+                  target_angles=self.target_angles, target_excess=self.target_excess,
+                  vertex_map=self.vertex_map)
 
     def report(self):
         """A JSON-ready dict of the run's statistics."""
         return {
             "vertices": int(len(self.vertices)),
+            "input_vertices": int(len(self.vertex_map)) if self.vertex_map is not None else None,
             "faces": int(len(self.faces)),
             "target": self.target,
             "formulation": self.formulation,
@@ -138,17 +177,21 @@ class SphericalParameterization:
 
 
 def _as_arrays(mesh):
-    """(vertices, faces) from a path, a trimesh.Trimesh, or a (V, F) pair."""
+    """(vertices, faces) from a path, a trimesh.Trimesh, or a (V, F) pair.
+
+    Arrays are passed on as given: :func:`~sphere_nlp.repair.check_arrays` converts them and reports
+    malformed ones (ragged face lists, wrong shapes) as input errors.
+    """
     if isinstance(mesh, (str, Path)):
         return load_mesh(mesh)
     if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
-        return np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
+        return mesh.vertices, mesh.faces
     try:
         vertices, faces = mesh
     except (TypeError, ValueError):
         raise errors.UsageError("mesh must be a file path, a trimesh.Trimesh or a (vertices, faces) pair") \
             from None
-    return np.asarray(vertices, float), np.asarray(faces)
+    return vertices, faces
 
 
 def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weight=None,
@@ -189,6 +232,30 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     -------
     SphericalParameterization
 
+    Raises
+    ------
+    UnreadableMeshError
+        Missing, empty, truncated or unparsable file; polygons; no triangles.
+    FaceIndexError
+        Face indices out of range, not integers, or repeated within a face.
+    NonFiniteCoordinatesError
+        NaN or infinite coordinates.
+    OpenBoundaryError, NonManifoldEdgeError, NonManifoldVertexError, ComponentsError, GenusError,
+    OrientationError
+        The surface is not a closed, manifold, connected, orientable genus-0 surface (after merging
+        duplicate vertices).
+    DegenerateFaceError
+        A face whose smallest corner angle is below 1e-10 rad (zero area).
+    UsageError
+        Unknown target mode or formulation, bad weights or custom targets.
+    SolveError
+        IPOPT failed or hit ``max_iter`` / ``max_time`` (only with ``check=True``).
+    CertificateError
+        The sphere failed its certificate (only with ``check=True``).
+
+    All input errors derive from :class:`MeshInputError`, all errors from :class:`SphereNLPError`;
+    each carries a one-line message naming the defect.
+
     Examples
     --------
     >>> from sphere_nlp.shapes import cylinder
@@ -213,10 +280,13 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
 
     vertices, faces = _as_arrays(mesh)
     lap("load")
-    vertices, faces, connectivity, repairs = validate_mesh(vertices, faces)
-    targets = make_targets(target, vertices, faces, connectivity.vertex_degree, angle_weight=angle_weight,
-                           area_weight=area_weight, target_angles=target_angles,
-                           target_excess=target_excess)
+    prepared = prepare_mesh(vertices, faces)
+    faces, connectivity = prepared.faces, prepared.connectivity
+    # Targets are angles and area ratios, so the normalised copy gives the same ones without the
+    # overflow, underflow and cancellation that extreme coordinates would cause.
+    targets = make_targets(target, prepared.normalised_vertices, faces, connectivity.vertex_degree,
+                           angle_weight=angle_weight, area_weight=area_weight,
+                           target_angles=target_angles, target_excess=target_excess)
     lap("build")
     solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
                             max_iter=max_iter, max_time=max_time, progress=progress,
@@ -242,16 +312,16 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     timings["total"] = time.perf_counter() - run_started
 
     result = SphericalParameterization(
-        vertices=positions, faces=faces, input_vertices=vertices, angles=solution.angles,
+        vertices=positions, faces=faces, input_vertices=prepared.vertices, angles=solution.angles,
         excess=solution.excess, target_angles=targets.angles, target_excess=targets.excess,
         target=targets.mode, formulation=formulation, success=solution.success and certificate.valid,
         status=solution.status, iterations=solution.iterations, objective=solution.objective,
         max_constraint_violation=solution.max_constraint_violation, max_angle_error=angle_error,
-        certificate=certificate, stages=solution.stages, timings=timings, repairs=repairs,
+        certificate=certificate, vertex_map=prepared.vertex_map, solved=solution.success,
+        stages=solution.stages, timings=timings, repairs=prepared.repairs,
         unfold_info=unfold_info, peak_rss_mb=peak_rss_mb())
     if check and not solution.success:
-        raise errors.SolveError("the angle solve failed: IPOPT status %s after %d iterations"
-                                % (solution.status, solution.iterations), result)
+        raise errors.SolveError(solve_failure_message(solution.status, solution.iterations), result)
     if check and not certificate.valid:
         raise errors.CertificateError("the sphere failed its certificate: " + certificate.reason, result)
     return result

@@ -87,7 +87,7 @@ class Progress:
 
 
 def run(args):
-    from .api import parameterize
+    from .api import parameterize, solve_failure_message
 
     input_path = Path(args.input)
     output = Path(args.output) if args.output else Path(input_path.name.split(".")[0] + ".sphere.off")
@@ -103,12 +103,11 @@ def run(args):
     if args.report:
         result.write_report(args.report)
     if not result.success:
-        if result.status not in ("Solve_Succeeded", "Solved_To_Acceptable_Level"):
-            reason = "the angle solve failed (IPOPT status %s after %d iterations)" % (result.status,
-                                                                                       result.iterations)
-        else:
-            reason = "the sphere failed its certificate (%s)" % result.certificate.reason
-        raise errors.SolveError(reason + "; nothing written")
+        if not result.solved:
+            raise errors.SolveError(solve_failure_message(result.status, result.iterations)
+                                    + "; nothing written")
+        raise errors.CertificateError("the sphere failed its certificate (%s; IPOPT status %s); nothing "
+                                      "written" % (result.certificate.reason, result.status))
     result.write(output)
     if args.save_solution:
         result.save_solution(args.save_solution)

@@ -68,11 +68,7 @@ def _half_edges(faces):
     return np.stack([np.roll(faces, -1, axis=1), np.roll(faces, -2, axis=1)], axis=2)
 
 
-def _pair(e):
-    return "%d-%d" % (e[0], e[1])
-
-
-def build_connectivity(faces, n_vertices):
+def build_connectivity(faces, n_vertices, vertex_names=None):
     """Check the topology of a face list and build the paper's connectivity tables.
 
     Every vertex index ``0 .. n_vertices - 1`` must be used. Faces that are oriented inconsistently
@@ -82,6 +78,9 @@ def build_connectivity(faces, n_vertices):
     ----------
     faces : (t, 3) int array
     n_vertices : int
+    vertex_names : (n_vertices,) int array, optional
+        The number to print for each vertex in error messages (the user's numbering, when vertices
+        were merged or dropped before this check). Default: the index itself.
 
     Returns
     -------
@@ -106,6 +105,11 @@ def build_connectivity(faces, n_vertices):
                                     % (faces.shape,))
     faces = faces.astype(np.int64)
     t = len(faces)
+    names = np.arange(n_vertices) if vertex_names is None else np.asarray(vertex_names)
+
+    def pair(edge):
+        return "%d-%d" % (names[edge[0]], names[edge[1]])
+
     if faces.min() < 0 or faces.max() >= n_vertices:
         bad = int(np.flatnonzero((faces < 0).any(1) | (faces >= n_vertices).any(1))[0])
         raise errors.FaceIndexError("face %d refers to a vertex index outside 0..%d" % (bad, n_vertices - 1))
@@ -116,7 +120,7 @@ def build_connectivity(faces, n_vertices):
     unused = np.setdiff1d(np.arange(n_vertices), faces.ravel())
     if len(unused):
         raise errors.FaceIndexError("%d vertex(es) are not used by any face (e.g. vertex %d)"
-                                    % (len(unused), unused[0]))
+                                    % (len(unused), names[unused[0]]))
 
     half = _half_edges(faces).reshape(-1, 2)           # row 3*i+j: edge opposite corner (i, j)
     key = np.sort(half, axis=1)
@@ -125,11 +129,11 @@ def build_connectivity(faces, n_vertices):
     if (counts == 1).any():
         bad = edges[counts == 1]
         raise errors.OpenBoundaryError("mesh has %d boundary edge(s) (e.g. %s): it must be closed"
-                                       % (len(bad), _pair(bad[0])))
+                                       % (len(bad), pair(bad[0])))
     if (counts > 2).any():
         bad = edges[counts > 2]
         raise errors.NonManifoldEdgeError("mesh has %d non-manifold edge(s) shared by 3 or more faces "
-                                          "(e.g. %s)" % (len(bad), _pair(bad[0])))
+                                          "(e.g. %s)" % (len(bad), pair(bad[0])))
     m = len(edges)
     order = np.argsort(inverse, kind="stable")          # the two corners of each edge, side by side
     corners = order.reshape(m, 2)
@@ -137,14 +141,8 @@ def build_connectivity(faces, n_vertices):
     if same_direction.any():
         raise errors.OrientationError("%d edge(s) are traversed in the same direction by both faces "
                                       "(e.g. %s): orientation is inconsistent"
-                                      % (same_direction.sum(), _pair(edges[same_direction][0])))
+                                      % (same_direction.sum(), pair(edges[same_direction][0])))
     edge_faces, edge_opposite = corners // 3, corners % 3
-
-    # One component: faces linked through their shared edges.
-    adjacency = sp.coo_matrix((np.ones(m), (edge_faces[:, 0], edge_faces[:, 1])), shape=(t, t))
-    n_comp, _ = connected_components(adjacency, directed=False)
-    if n_comp > 1:
-        raise errors.ComponentsError("mesh has %d connected components: it must have exactly one" % n_comp)
 
     # Vertex manifoldness: around each vertex, corners linked across shared edges form one fan.
     # Across edge k = (a, b), the corner at a in I1 and the corner at a in I2 are neighbours.
@@ -162,8 +160,19 @@ def build_connectivity(faces, n_vertices):
         fans_per_vertex = np.bincount(faces.ravel()[np.unique(fan_label, return_index=True)[1]],
                                       minlength=n_vertices)
         bad = np.flatnonzero(fans_per_vertex > 1)
-        raise errors.NonManifoldVertexError("mesh has %d non-manifold (pinched) vertex(es) (e.g. vertex %d)"
-                                            % (len(bad), bad[0]))
+        raise errors.NonManifoldVertexError("mesh has %d non-manifold (pinched) vertex(es) where separate "
+                                            "fans of faces meet (e.g. vertex %d)"
+                                            % (len(bad), names[bad[0]]))
+
+    # One component: faces linked through their shared edges. Checked after the fans, so that two
+    # surfaces touching at a single vertex are reported as the pinched vertex they share.
+    adjacency = sp.coo_matrix((np.ones(m), (edge_faces[:, 0], edge_faces[:, 1])), shape=(t, t))
+    n_comp, face_component = connected_components(adjacency, directed=False)
+    if n_comp > 1:
+        sizes = np.sort(np.bincount(face_component))[::-1]
+        shown = ", ".join(str(k) for k in sizes[:5]) + (", ..." if n_comp > 5 else "")
+        raise errors.ComponentsError("mesh has %d connected components (faces per component: %s): it "
+                                     "must have exactly one" % (n_comp, shown))
 
     chi = n_vertices - m + t
     if chi != 2:
@@ -186,7 +195,8 @@ def orient_consistently(faces):
     """Flip faces so that every edge is traversed once in each direction.
 
     Orientation is propagated along a breadth-first spanning tree of each component; the winding
-    of the majority of its faces is kept, so as few faces as possible are flipped. Edges must already be manifold (two faces each).
+    of the majority of its faces is kept, so as few faces as possible are flipped. Edges must already
+    be manifold (two faces each).
 
     Returns
     -------
@@ -241,17 +251,19 @@ def orient_consistently(faces):
 DEGENERATE_ANGLE = 1e-10
 
 
-def validate_mesh(vertices, faces):
+def validate_mesh(vertices, faces, vertex_names=None):
     """Check a mesh for use as input and build its connectivity.
 
     Repairs that do not change the surface are applied and listed: faces oriented inconsistently with
-    their neighbours are flipped to agree with face 0. Everything else that is wrong raises a
+    their neighbours are flipped to agree with the majority. Everything else that is wrong raises a
     :class:`~sphere_nlp.errors.MeshInputError` subclass with a one-line message.
 
     Parameters
     ----------
     vertices : (n, 3) array
     faces : (t, 3) int array
+    vertex_names : (n,) int array, optional
+        Vertex numbers to use in error messages (see :func:`build_connectivity`).
 
     Returns
     -------
@@ -279,8 +291,10 @@ def validate_mesh(vertices, faces):
                                          % (vertices.shape,))
     bad = ~np.isfinite(vertices).all(axis=1)
     if bad.any():
+        first = np.flatnonzero(bad)[0]
         raise errors.NonFiniteCoordinatesError("%d vertex(es) have non-finite coordinates (e.g. vertex %d)"
-                                               % (bad.sum(), np.flatnonzero(bad)[0]))
+                                               % (bad.sum(), first if vertex_names is None
+                                                  else vertex_names[first]))
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
         raise errors.FaceIndexError("faces must be a non-empty (t, 3) array of triangles, got shape %s"
@@ -291,14 +305,16 @@ def validate_mesh(vertices, faces):
     faces = faces.astype(np.int64)
     repairs = []
     try:
-        connectivity = build_connectivity(faces, len(vertices))
+        connectivity = build_connectivity(faces, len(vertices), vertex_names)
     except errors.OrientationError:
         faces, flipped = orient_consistently(faces)
         repairs.append("flipped %d face(s) to make the orientation consistent" % flipped)
-        connectivity = build_connectivity(faces, len(vertices))
+        connectivity = build_connectivity(faces, len(vertices), vertex_names)
     min_angle = corner_angles_3d(vertices, faces).min(axis=1)
     degenerate = ~(min_angle > DEGENERATE_ANGLE)
     if degenerate.any():
-        raise errors.DegenerateFaceError("mesh has %d degenerate (zero-area) face(s) (e.g. face %d)"
-                                         % (degenerate.sum(), np.flatnonzero(degenerate)[0]))
+        first = int(np.flatnonzero(degenerate)[0])
+        raise errors.DegenerateFaceError("mesh has %d degenerate (zero-area) face(s) (e.g. face %d, smallest "
+                                         "angle %.3g rad, below %g): remove or fix them"
+                                         % (degenerate.sum(), first, min_angle[first], DEGENERATE_ANGLE))
     return vertices, faces, connectivity, repairs

@@ -19,7 +19,10 @@ class MeshInputError(SphereNLPError, ValueError):
 
 
 class UnreadableMeshError(MeshInputError):
-    """The file is missing, empty, truncated, of an unknown format, or not a triangle mesh."""
+    """The file is missing, empty, truncated, of an unknown format, or not a triangle mesh.
+
+    Polygons with more than three corners are reported here too: they are rejected, not triangulated.
+    """
 
 
 class FaceIndexError(MeshInputError):
@@ -31,7 +34,11 @@ class NonFiniteCoordinatesError(MeshInputError):
 
 
 class DegenerateFaceError(MeshInputError):
-    """A face has zero area (collinear or coincident corners), so it has no angles to aim for."""
+    """A face has zero area (collinear or coincident corners), so it has no angles to aim for.
+
+    The limit is a smallest 3D corner angle of 1e-10 rad (``connectivity.DEGENERATE_ANGLE``); thin but
+    real slivers are accepted.
+    """
 
 
 class OpenBoundaryError(MeshInputError):

@@ -20,30 +20,254 @@ MESH_FORMATS = (".off", ".obj", ".ply")
 def load_mesh(path):
     """Read a triangle mesh file, returning ``(vertices (n, 3) float, faces (t, 3) int)``.
 
-    Vertices and faces are returned exactly as stored (no merging, no reordering).
+    Vertices and faces are returned exactly as stored (no merging, no reordering). OFF and OBJ files are
+    read by sphere_nlp's own strict readers (:func:`read_off`, :func:`read_obj`); other formats by
+    trimesh. Polygons with more than three corners are rejected rather than triangulated: how a polygon
+    is split changes the target angles, so that choice is left to the user. For PLY the header's
+    counts are checked against what trimesh read, which catches truncated files and polygons.
 
     Raises
     ------
     UnreadableMeshError
-        Missing, empty or unparsable file, or no triangles in it.
+        Missing, empty, truncated or unparsable file, polygons, or no triangles in it.
+    FaceIndexError
+        An OBJ face refers to a vertex that does not exist.
     """
-    import trimesh
-
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise errors.UnreadableMeshError("cannot read %s: no such file" % path)
+    if not path.is_file():
+        raise errors.UnreadableMeshError("cannot read %s: not a file" % path)
     if path.stat().st_size == 0:
         raise errors.UnreadableMeshError("cannot read %s: the file is empty" % path)
+    suffix = path.suffix.lower()
+    if suffix == ".off":
+        vertices, faces = read_off(path)
+    elif suffix == ".obj":
+        vertices, faces = read_obj(path)
+    else:
+        vertices, faces = _load_with_trimesh(path)
+    if len(faces) == 0 or len(vertices) == 0:
+        raise errors.UnreadableMeshError("cannot read %s as a mesh: it contains no triangles "
+                                         "(empty or truncated?)" % path)
+    return vertices, faces
+
+
+def _load_with_trimesh(path):
+    """Formats other than OFF and OBJ, through trimesh (with PLY header counts checked)."""
+    import trimesh
+
     try:
         loaded = trimesh.load(str(path), process=False, force="mesh")
-        vertices = np.asarray(loaded.vertices, dtype=float)
-        faces = np.asarray(loaded.faces, dtype=np.int64)
+        vertices = np.asarray(loaded.vertices, dtype=float).reshape(-1, 3)
+        faces = np.asarray(loaded.faces, dtype=np.int64).reshape(-1, 3)
     except Exception as exc:  # trimesh raises many types for bad files
         detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise errors.UnreadableMeshError("cannot read %s as a mesh: %s" % (path, detail)) from None
-    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0 or len(vertices) == 0:
-        raise errors.UnreadableMeshError("cannot read %s as a mesh: it contains no triangles" % path)
+        raise errors.UnreadableMeshError("cannot read %s as a mesh (corrupt or truncated?): %s"
+                                         % (path, detail)) from None
+    if path.suffix.lower() == ".ply":
+        _check_ply_counts(path, len(vertices), len(faces))
     return vertices, faces
+
+
+def _check_ply_counts(path, n_vertices, n_faces):
+    """Compare a PLY header's element counts with what was read.
+
+    trimesh reads a truncated ASCII PLY without complaint (it returns the faces that are there) and
+    triangulates polygons; both show up as a face count different from the header's.
+    """
+    with open(path, "rb") as handle:
+        head = handle.read(1 << 16)
+    end = head.find(b"end_header")
+    if end < 0:
+        raise errors.UnreadableMeshError("cannot read %s as a mesh: PLY header has no end_header" % path)
+    header = head[:end].decode("ascii", "replace").split("\n")
+    counts = {}
+    for line in header:
+        words = line.split()
+        if len(words) == 3 and words[0] == "element" and words[2].isdigit():
+            counts[words[1]] = int(words[2])
+    promised_v, promised_f = counts.get("vertex"), counts.get("face")
+    if promised_v is not None and n_vertices < promised_v:
+        raise errors.UnreadableMeshError("cannot read %s: truncated (header promises %d vertices, found %d)"
+                                         % (path, promised_v, n_vertices))
+    if promised_f is not None and n_faces < promised_f:
+        raise errors.UnreadableMeshError("cannot read %s: truncated (header promises %d faces, found %d)"
+                                         % (path, promised_f, n_faces))
+    if promised_f is not None and n_faces > promised_f:
+        raise errors.UnreadableMeshError("cannot read %s: it has faces with more than 3 corners "
+                                         "(%d faces triangulate into %d); only triangle meshes are "
+                                         "accepted" % (path, promised_f, n_faces))
+
+
+def _text_lines(path, kind):
+    """The file's lines, with comments (from '#') stripped; rejects binary content."""
+    data = path.read_bytes()
+    if b"\0" in data:
+        raise errors.UnreadableMeshError("cannot read %s: not a text %s file (binary data)" % (path, kind))
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        text = data.decode("latin-1")
+    return [line.split("#", 1)[0] for line in text.splitlines()]
+
+
+def _floats(words, path, line_number, what):
+    try:
+        return [float(w) for w in words]
+    except ValueError:
+        raise errors.UnreadableMeshError("cannot read %s: line %d: %s is not a number"
+                                         % (path, line_number, what)) from None
+
+
+def read_off(path):
+    """Read an ASCII OFF file (also COFF, NOFF, ... headers) strictly.
+
+    The header's counts must be met exactly: fewer vertex or face lines means a truncated file.
+    Every face must be a triangle (``3 a b c``; colour values after the indices are ignored).
+
+    Returns
+    -------
+    vertices : (n, 3) float array
+    faces : (t, 3) int64 array
+        Indices as stored (range checks come later, in validation).
+
+    Raises
+    ------
+    UnreadableMeshError
+
+    Examples
+    --------
+    >>> import tempfile, os
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     p = os.path.join(d, "t.off")
+    ...     _ = open(p, "w").write("OFF\\n4 4 0\\n0 0 0\\n1 0 0\\n0 1 0\\n0 0 1\\n"
+    ...                            "3 0 2 1\\n3 0 1 3\\n3 0 3 2\\n3 1 2 3\\n")
+    ...     V, F = read_off(p)
+    >>> V.shape, F.tolist()[0]
+    ((4, 3), [0, 2, 1])
+    """
+    path = Path(path)
+    lines = [(k + 1, line.split()) for k, line in enumerate(_text_lines(path, "OFF"))]
+    lines = [(k, words) for k, words in lines if words]
+    if not lines or not lines[0][1][0].upper().endswith("OFF"):
+        raise errors.UnreadableMeshError("cannot read %s: not an OFF file (no OFF header)" % path)
+    counts = lines[0][1][1:]                        # "OFF n t e" on one line is allowed too
+    body = lines[1:]
+    if not counts:
+        if not body:
+            raise errors.UnreadableMeshError("cannot read %s: truncated (no vertex and face counts)" % path)
+        counts = body[0][1]
+        body = body[1:]
+    try:
+        n_vertices, n_faces = int(counts[0]), int(counts[1])
+    except (ValueError, IndexError):
+        raise errors.UnreadableMeshError("cannot read %s: the OFF header's counts %r are not two integers"
+                                         % (path, " ".join(counts))) from None
+    if n_vertices <= 0 or n_faces <= 0:
+        raise errors.UnreadableMeshError("cannot read %s as a mesh: the header declares %d vertices and %d "
+                                         "faces" % (path, n_vertices, n_faces))
+    if len(body) < n_vertices + n_faces:
+        found_v = min(len(body), n_vertices)
+        found_f = max(len(body) - n_vertices, 0)
+        raise errors.UnreadableMeshError("cannot read %s: truncated (header promises %d vertices and %d "
+                                         "faces, found %d and %d)"
+                                         % (path, n_vertices, n_faces, found_v, found_f))
+    vertices = np.empty((n_vertices, 3))
+    for i, (line_number, words) in enumerate(body[:n_vertices]):
+        if len(words) < 3:
+            raise errors.UnreadableMeshError("cannot read %s: line %d: vertex %d has %d coordinate(s), "
+                                             "expected 3" % (path, line_number, i, len(words)))
+        vertices[i] = _floats(words[:3], path, line_number, "a vertex coordinate")
+    faces = np.empty((n_faces, 3), np.int64)
+    polygons = []
+    for i, (line_number, words) in enumerate(body[n_vertices:n_vertices + n_faces]):
+        try:
+            size = int(words[0])
+            indices = [int(w) for w in words[1:1 + size]]
+        except ValueError:
+            raise errors.UnreadableMeshError("cannot read %s: line %d: face %d has a non-integer index"
+                                             % (path, line_number, i)) from None
+        if len(indices) < size:
+            raise errors.UnreadableMeshError("cannot read %s: line %d: face %d promises %d indices, has %d"
+                                             % (path, line_number, i, size, len(indices)))
+        if size != 3:
+            polygons.append((i, size))
+            continue
+        faces[i] = indices
+    _reject_polygons(path, polygons)
+    return vertices, faces
+
+
+def read_obj(path):
+    """Read the geometry of a Wavefront OBJ file strictly: ``v`` and ``f`` lines, nothing else.
+
+    Texture and normal references (``f 1/4/2 ...``) and negative (relative) indices are understood;
+    all other statements are ignored. Vertex and face order are kept.
+
+    Returns
+    -------
+    vertices : (n, 3) float array
+    faces : (t, 3) int64 array (0-based)
+
+    Raises
+    ------
+    UnreadableMeshError
+        Unparsable lines, polygons, no faces.
+    FaceIndexError
+        A face refers to a vertex that does not exist.
+    """
+    path = Path(path)
+    raw = _text_lines(path, "OBJ")
+    vertices, faces, face_lines, polygons = [], [], [], []
+    known = False
+    for k, line in enumerate(raw):
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "v":
+            known = True
+            if len(words) < 4:
+                raise errors.UnreadableMeshError("cannot read %s: line %d: vertex %d has %d coordinate(s), "
+                                                 "expected 3" % (path, k + 1, len(vertices) + 1,
+                                                                 len(words) - 1))
+            vertices.append(_floats(words[1:4], path, k + 1, "a vertex coordinate"))
+        elif words[0] == "f":
+            known = True
+            try:
+                corners = [int(w.split("/")[0]) for w in words[1:]]
+            except ValueError:
+                raise errors.UnreadableMeshError("cannot read %s: line %d: face %d has a non-integer index"
+                                                 % (path, k + 1, len(faces))) from None
+            if len(corners) != 3:
+                polygons.append((len(faces), len(corners)))
+                corners = (corners + [0, 0, 0])[:3]
+            # OBJ numbers vertices from 1; negative numbers count back from the latest vertex.
+            faces.append([c - 1 if c > 0 else len(vertices) + c if c < 0 else -1 for c in corners])
+            face_lines.append(k + 1)
+        elif words[0] in ("vt", "vn", "vp", "g", "o", "s", "usemtl", "mtllib", "l", "p", "cstype",
+                          "deg", "curv", "surf", "end"):
+            known = True
+    if not known:
+        raise errors.UnreadableMeshError("cannot read %s: not an OBJ file (no v or f lines)" % path)
+    _reject_polygons(path, polygons)
+    vertices = np.asarray(vertices, float).reshape(-1, 3)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    bad = (faces < 0) | (faces >= len(vertices))
+    if bad.any():
+        i = int(np.flatnonzero(bad.any(axis=1))[0])
+        raise errors.FaceIndexError("%s: line %d: face %d refers to a vertex that does not exist "
+                                    "(the file has %d vertices, numbered from 1)"
+                                    % (path, face_lines[i], i, len(vertices)))
+    return vertices, faces
+
+
+def _reject_polygons(path, polygons):
+    if polygons:
+        i, size = polygons[0]
+        raise errors.UnreadableMeshError("cannot read %s: %d face(s) are not triangles (e.g. face %d has %d "
+                                         "corners): only triangle meshes are accepted; triangulate it first"
+                                         % (path, len(polygons), i, size))
 
 
 @contextmanager

@@ -1,0 +1,167 @@
+"""Small meshes built by code for the robustness tests: defective ones and random genus-0 ones.
+
+Every builder returns ``(vertices (n, 3) float, faces (t, 3) int)`` as numpy arrays.
+"""
+
+import numpy as np
+from scipy.spatial import ConvexHull
+
+from sphere_nlp.shapes import cylinder, icosphere, octahedron, tetrahedron
+from sphere_nlp.targets import corner_angles_3d
+
+
+def ellipsoid(subdivisions=2, axes=(1.0, 1.6, 0.7)):
+    """An icosphere stretched into an ellipsoid: original-angles needs a few IPOPT iterations on it."""
+    V, F = icosphere(subdivisions)
+    return V * np.asarray(axes), F
+
+
+def torus(major=10, minor=6, R=2.0, r=0.7):
+    """Closed genus-1 torus: a ``major`` x ``minor`` grid of quads, each split into two triangles."""
+    u = 2 * np.pi * np.arange(major) / major
+    v = 2 * np.pi * np.arange(minor) / minor
+    U, W = np.meshgrid(u, v, indexing="ij")
+    V = np.c_[((R + r * np.cos(W)) * np.cos(U)).ravel(), ((R + r * np.cos(W)) * np.sin(U)).ravel(),
+              (r * np.sin(W)).ravel()]
+    i, j = np.meshgrid(np.arange(major), np.arange(minor), indexing="ij")
+    a = (i * minor + j).ravel()
+    b = (((i + 1) % major) * minor + j).ravel()
+    c = (((i + 1) % major) * minor + (j + 1) % minor).ravel()
+    d = (i * minor + (j + 1) % minor).ravel()
+    return V, np.vstack([np.c_[a, b, c], np.c_[a, c, d]])
+
+
+def two_tetrahedra(shared_vertex=False):
+    """Two tetrahedra: disjoint, or touching at one vertex (a pinched vertex)."""
+    V, F = tetrahedron()
+    if not shared_vertex:
+        return np.vstack([V, V + [3.0, 0, 0]]), np.vstack([F, F + len(V)])
+    # Reflect the tetrahedron through its vertex 0 and reuse that vertex: the copy's other vertices are
+    # new (indices 4..6); a point reflection keeps the winding outward.
+    mirrored = 2 * V[0] - V[1:]
+    F2 = np.where(F == 0, 0, F + 3)
+    return np.vstack([V, mirrored]), np.vstack([F, F2])
+
+
+def projective_plane():
+    """The 6-vertex triangulation of the real projective plane: closed, manifold, not orientable."""
+    V, _ = icosphere(0)
+    F = np.array([[1, 2, 3], [1, 3, 4], [1, 4, 5], [1, 5, 6], [1, 6, 2], [2, 3, 5], [3, 4, 6],
+                  [4, 5, 2], [5, 6, 3], [6, 2, 4]]) - 1
+    return V[:6] * [1.0, 1.3, 0.8], F
+
+
+def pinched_sphere():
+    """An icosphere with two far-apart vertices identified: one component, one pinched vertex."""
+    V, F = icosphere(1)
+    a = 0
+    b = int(np.argmin(V @ V[a]))                 # the antipodal vertex: no common neighbour with a
+    F = np.where(F == b, a, F)
+    keep = np.arange(len(V)) != b
+    new_index = np.cumsum(keep) - 1
+    return V[keep], new_index[F]
+
+
+def open_cylinder():
+    """The cylinder with one cap triangle removed: three boundary edges."""
+    V, F = cylinder()
+    return V, F[:-1]
+
+
+def finned_octahedron():
+    """An octahedron with a two-sided fin on edge 0-2, so that edge has four faces."""
+    V, F = octahedron()
+    V = np.vstack([V, [0.8, 0.8, 0.8]])
+    return V, np.vstack([F, [[0, 2, 6], [2, 0, 6]]])
+
+
+def flattened_octahedron(height):
+    """Octahedron whose top vertex sits ``height`` above the midpoint of edge 0-2.
+
+    Face 0 = (0, 2, 4) then has its smallest angle atan(height / (sqrt(2) / 2)) at vertices 0 and 2:
+    zero-area at ``height = 0``, a sliver for small heights.
+    """
+    V, F = octahedron()
+    V[4] = [0.5, 0.5, height]
+    return V, F
+
+
+def soup(vertices, faces):
+    """The same surface as an unwelded triangle soup (three vertices of its own per face, as in STL)."""
+    return vertices[faces].reshape(-1, 3), np.arange(3 * len(faces)).reshape(-1, 3)
+
+
+def random_genus0_mesh(n_points, seed, n_flips=None, jitter=0.3, min_angle=0.02):
+    """A random closed genus-0 mesh: convex hull of points on a sphere, then jitter and edge flips.
+
+    Parameters
+    ----------
+    n_points : int
+        Number of vertices (all on the hull, as they start on a sphere).
+    seed : int
+        Seed of the random generator (the mesh is a function of the arguments).
+    n_flips : int, optional
+        Edge flips to attempt (default ``2 * n_points``). A flip is made only when the edge's
+        replacement does not exist yet (the mesh stays simple and manifold) and both new triangles
+        keep every corner angle above ``min_angle``.
+    jitter : float
+        Radial jitter: each vertex is scaled by a random factor in [1 - jitter, 1 + jitter], then
+        moved by up to ``jitter / 4`` in a random direction, making the mesh non-convex and irregular.
+    min_angle : float
+        Smallest corner angle (radians) allowed after jitter and flips.
+
+    Returns
+    -------
+    vertices : (n, 3) float array
+    faces : (2n - 4, 3) int array
+        Consistently oriented; outward for the hull before flips.
+    """
+    rng = np.random.default_rng(seed)
+    P = rng.normal(size=(n_points, 3))
+    P /= np.linalg.norm(P, axis=1, keepdims=True)
+    hull = ConvexHull(P)
+    F = hull.simplices.copy()
+    keep = np.zeros(n_points, bool)
+    keep[F.ravel()] = True                       # points inside the hull (rare) are left out
+    new_index = np.cumsum(keep) - 1
+    P, F = P[keep], new_index[F]
+    normal = np.cross(P[F[:, 1]] - P[F[:, 0]], P[F[:, 2]] - P[F[:, 0]])
+    # Outward = away from the mean of the points, which is inside the hull (the origin need not be,
+    # when few points happen to lie in one hemisphere).
+    inward = np.einsum("ij,ij->i", normal, P[F].mean(axis=1) - P.mean(axis=0)) < 0
+    F[inward] = F[inward][:, ::-1]
+
+    moved = P * rng.uniform(1 - jitter, 1 + jitter, size=(len(P), 1))
+    moved += rng.uniform(-jitter / 4, jitter / 4, size=moved.shape)
+    if corner_angles_3d(moved, F).min() > min_angle:
+        P = moved                                 # otherwise keep the convex hull's positions
+
+    n_flips = 2 * n_points if n_flips is None else n_flips
+    for _ in range(n_flips):
+        _try_random_flip(P, F, rng, min_angle)
+    return P, F
+
+
+def _try_random_flip(P, F, rng, min_angle):
+    """Flip one random edge of the oriented mesh in place, if that keeps it simple and well shaped."""
+    i = rng.integers(len(F))
+    j = rng.integers(3)
+    a, b, c = F[i, j], F[i, (j + 1) % 3], F[i, (j + 2) % 3]       # face i = (a, b, c), edge a -> b
+    # The other face has the edge as b -> a.
+    other = np.flatnonzero(((F == b) & (np.roll(F, -1, axis=1) == a)).any(axis=1))
+    if len(other) != 1:
+        return False
+    k = other[0]
+    d = int(F[k][(np.flatnonzero(F[k] == a)[0] + 1) % 3])           # face k = (b, a, d)
+    if c == d:
+        return False
+    # Edge c-d must not exist already, or the flip would duplicate it (a non-manifold edge).
+    has_c = (F == c).any(axis=1)
+    has_d = (F == d).any(axis=1)
+    if (has_c & has_d).any():
+        return False
+    new = np.array([[a, d, c], [d, b, c]])                          # keeps the orientation
+    if corner_angles_3d(P, new).min() <= min_angle:
+        return False
+    F[i], F[k] = new
+    return True
