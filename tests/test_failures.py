@@ -62,7 +62,9 @@ def test_api_solver_limit_raises_solve_error_with_the_partial_result(tmp_path):
     assert info.value.exit_status == 1
     assert info.value.result is not None and not info.value.result.success
     result = info.value.result
-    assert result.status == "Maximum_Iterations_Exceeded" and not result.certificate.valid
+    # (Started from a valid embedding, the stopped iterate may well unfold to a valid sphere; it is
+    # still not the solution, so it is a failure.)
+    assert result.status == "Maximum_Iterations_Exceeded"
     # The result of a stopped solve refuses to be written.
     with pytest.raises(sphere_nlp.SolveError, match="refusing to write"):
         result.write(tmp_path / "s.off")
