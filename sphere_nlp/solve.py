@@ -237,9 +237,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         nlp = AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped)
         x0 = nlp.pack(init_angles, init_excess)
         run = nlp.solve(x0, options=options, progress=stage_progress("equality"))
-        stages.append(dict(name="equality", **{k: run[k] for k in
-                                                ("status", "iterations", "objective", "time_s",
-                                                 "build_s")}))
+        stages.append(_stage_record("equality", run))
         u_min = np.min(run["x"][:3 * connectivity.n_faces])
         if not run["success"] or not u_min > np.log(nlp.angle_margin):
             # As the paper adds its inequalities only when needed: the optimum lies at (or the
@@ -252,17 +250,14 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                                                             lower + 1e-3)
             run = nlp.solve(restart, inequalities=True, options=options,
                             progress=stage_progress("margin"))
-            stages.append(dict(name="margin", **{k: run[k] for k in
-                                                  ("status", "iterations", "objective", "time_s",
-                                                   "build_s")}))
+            stages.append(_stage_record("margin", run))
         angles, excess = nlp.unpack(run["x"])
         return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess)
 
     nlp = AngleNLP(connectivity, targets, formulation)
     run = nlp.solve(nlp.pack(init_angles, init_excess), inequalities=False, options=options,
                     progress=stage_progress("equality"))
-    stages.append(dict(name="equality", **{k: run[k] for k in
-                                            ("status", "iterations", "objective", "time_s", "build_s")}))
+    stages.append(_stage_record("equality", run))
     angles, excess = nlp.unpack(run["x"])
     if violates_inequalities(angles, excess):
         warm = dict(options, **WARM_START_OPTIONS)
@@ -275,11 +270,14 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             cold = dict(options)
             run = nlp.solve(nlp.pack(init_angles, init_excess), inequalities=True, options=cold,
                             progress=stage_progress("inequality-cold"))
-        stages.append(dict(name="inequality", **{k: run[k] for k in
-                                                  ("status", "iterations", "objective", "time_s",
-                                                   "build_s")}))
+        stages.append(_stage_record("inequality", run))
         angles, excess = nlp.unpack(run["x"])
     return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess)
+
+
+def _stage_record(name, run):
+    """The statistics of one IPOPT run kept in the result."""
+    return dict(name=name, **{k: run[k] for k in ("status", "iterations", "objective", "time_s", "build_s")})
 
 
 def _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess):
