@@ -23,11 +23,12 @@ SOLVED_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 
 
 def solve_failure_message(status, iterations):
-    """One line saying why an angle solve is not a result (IPOPT's status, or the inequalities)."""
+    """One line saying why an angle solve is not a result (IPOPT's status, or the constraints)."""
     if status in SOLVED_STATUSES:
-        # IPOPT converged, but to angles with a zero or negative angle or excess (violating (3)-(5)).
-        return ("the angle solve ended outside the inequality constraints (3)-(5): a zero or negative "
-                "angle or excess (IPOPT status %s after %d iterations)" % (status, iterations))
+        # IPOPT converged, but to angles that break a constraint: a zero or negative angle or excess
+        # ((3)-(5)), or an equality (6)-(8) off by more than 1e-8.
+        return ("the angle solve ended outside the constraints: a zero or negative angle or excess, or "
+                "an equality residual above 1e-8 (IPOPT status %s after %d iterations)" % (status, iterations))
     return "the angle solve failed (IPOPT status %s after %d iterations)" % (status, iterations)
 
 
