@@ -180,7 +180,7 @@ class SphericalParameterization:
 def _as_arrays(mesh):
     """(vertices, faces) from a path, a trimesh.Trimesh, or a (V, F) pair.
 
-    Arrays are passed on as given: :func:`~sphere_nlp.repair.check_arrays` converts them and reports
+    Arrays are passed on as given: :func:`~sphere_nlp.connectivity.check_arrays` converts them and reports
     malformed ones (ragged face lists, wrong shapes) as input errors.
     """
     if isinstance(mesh, (str, Path)):

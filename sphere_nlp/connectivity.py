@@ -246,6 +246,57 @@ def orient_consistently(faces):
     return faces, int(parity.sum())
 
 
+def check_arrays(vertices, faces):
+    """Reject malformed vertex and face arrays; return them as float64 and int64.
+
+    Raises
+    ------
+    UnreadableMeshError
+        ``vertices`` is not a non-empty (n, 3) array.
+    FaceIndexError
+        ``faces`` is not a non-empty (t, 3) array of integers in 0..n-1, or a face repeats an index.
+    NonFiniteCoordinatesError
+        A coordinate is NaN or infinite.
+    """
+    try:
+        vertices = np.asarray(vertices, dtype=float)
+    except (TypeError, ValueError):
+        raise errors.UnreadableMeshError("vertices must be an (n, 3) array of numbers") from None
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
+        raise errors.UnreadableMeshError("vertices must be a non-empty (n, 3) array, got shape %s"
+                                         % (vertices.shape,))
+    try:
+        faces = np.asarray(faces)
+    except ValueError:
+        raise errors.FaceIndexError("faces must be a (t, 3) array of triangles (ragged input?)") from None
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise errors.FaceIndexError("faces must be a non-empty (t, 3) array of triangles, got shape %s"
+                                    % (faces.shape,))
+    if not np.issubdtype(faces.dtype, np.integer):
+        if not (np.issubdtype(faces.dtype, np.number) and np.isfinite(faces).all()
+                and np.array_equal(faces, np.round(faces))):
+            raise errors.FaceIndexError("face indices must be integers")
+    faces = faces.astype(np.int64)
+    n = len(vertices)
+    outside = (faces < 0) | (faces >= n)
+    if outside.any():
+        i, j = np.argwhere(outside)[0]
+        raise errors.FaceIndexError("%d face(s) refer to vertices that do not exist (e.g. face %d refers to "
+                                    "vertex %d; there are %d vertices, 0..%d)"
+                                    % (outside.any(axis=1).sum(), i, faces[i, j], n, n - 1))
+    repeated = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
+    if repeated.any():
+        i = int(np.flatnonzero(repeated)[0])
+        raise errors.FaceIndexError("%d face(s) repeat a vertex index (e.g. face %d = %s): degenerate "
+                                    "triangles" % (repeated.sum(), i, faces[i].tolist()))
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        first = np.flatnonzero(bad)[0]
+        raise errors.NonFiniteCoordinatesError("%d vertex(es) have non-finite coordinates (e.g. vertex %d = "
+                                               "%s)" % (bad.sum(), first, vertices[first].tolist()))
+    return vertices, faces
+
+
 # A face whose smallest 3D corner angle is below this (radians) counts as degenerate: its corners are
 # collinear to working precision and its target angles and area mean nothing.
 DEGENERATE_ANGLE = 1e-10
@@ -285,24 +336,7 @@ def validate_mesh(vertices, faces, vertex_names=None):
     """
     from .targets import corner_angles_3d
 
-    vertices = np.asarray(vertices, dtype=float)
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
-        raise errors.UnreadableMeshError("vertices must be a non-empty (n, 3) array, got shape %s"
-                                         % (vertices.shape,))
-    bad = ~np.isfinite(vertices).all(axis=1)
-    if bad.any():
-        first = np.flatnonzero(bad)[0]
-        raise errors.NonFiniteCoordinatesError("%d vertex(es) have non-finite coordinates (e.g. vertex %d)"
-                                               % (bad.sum(), first if vertex_names is None
-                                                  else vertex_names[first]))
-    faces = np.asarray(faces)
-    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
-        raise errors.FaceIndexError("faces must be a non-empty (t, 3) array of triangles, got shape %s"
-                                    % (faces.shape,))
-    if not np.issubdtype(faces.dtype, np.integer):
-        if not np.array_equal(faces, np.round(faces)):
-            raise errors.FaceIndexError("face indices must be integers")
-    faces = faces.astype(np.int64)
+    vertices, faces = check_arrays(vertices, faces)
     repairs = []
     try:
         connectivity = build_connectivity(faces, len(vertices), vertex_names)
