@@ -19,6 +19,7 @@ EXAMPLES = """examples:
   python -m sphere_nlp bunny.off --target original-areas -o bunny_sphere.obj --report run.json
   python -m sphere_nlp head.ply --target equal-angles --save-solution angles.npz --quiet
   python -m sphere_nlp reproduce fig3 --out fig3/   (the paper's Fig. 3: PNG, meshes, JSON)
+  python -m sphere_nlp compare a.off b.obj --out cmp/   (sphere_nlp vs. baselines: JSON, Markdown)
 """
 
 
@@ -126,6 +127,10 @@ def main(argv=None):
         from .reproduce import main as reproduce_main
 
         return reproduce_main(argv[1:])
+    if argv[:1] == ["compare"]:        # `python -m sphere_nlp compare MESH... --out DIR`
+        from .compare import main as compare_main
+
+        return compare_main(argv[1:])
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

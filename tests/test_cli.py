@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from conftest import MODELS
 from sphere_nlp.certify import certify, spherical_angles
@@ -56,3 +57,54 @@ def test_cli_bad_usage_is_exit_2(tmp_path):
     assert p.returncode == 2
     p = run(MODELS / "cylinder.off", "-o", tmp_path / "x.stl", cwd=tmp_path)
     assert p.returncode == 2 and "output must end in" in p.stderr
+
+
+def test_compare_writes_rows_whose_metrics_match_recomputation(tmp_path):
+    from sphere_nlp import parameterize
+    from sphere_nlp.baselines import conformal_map, tutte_projection
+    from sphere_nlp.metrics import distortion_summary
+
+    methods = ["sphere_nlp:original-angles", "conformal", "tutte-projection"]
+    p = run("compare", MODELS / "cylinder.off", "--out", tmp_path / "cmp", "--methods", ",".join(methods))
+    assert p.returncode == 0, p.stderr
+    assert "cylinder.off: tutte-projection: valid" in p.stderr          # progress lines on stderr
+    rows = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert [r["method"] for r in rows] == methods and {r["mesh"] for r in rows} == {"cylinder.off"}
+    for row in rows:
+        assert {"mesh", "method", "valid", "flipped", "mean_abs_angle_diff_deg", "qc_mean", "qc_max",
+                "mean_abs_log_area", "time_s", "status", "note"} <= set(row)
+        assert row["time_s"] >= 0
+    by_method = {r["method"]: r for r in rows}
+    assert by_method["sphere_nlp:original-angles"]["valid"] and by_method["tutte-projection"]["valid"]
+    V, F = load_mesh(MODELS / "cylinder.off")
+    recomputed = {"sphere_nlp:original-angles": parameterize((V, F), target="original-angles").vertices,
+                  "conformal": conformal_map(V, F), "tutte-projection": tutte_projection(V, F)}
+    for method, positions in recomputed.items():
+        expected = distortion_summary(V, positions, F)
+        for key, value in expected.items():
+            assert by_method[method][key] == (value if not isinstance(value, float) else
+                                              pytest.approx(value, rel=1e-9, abs=1e-12)), (method, key)
+    table = (tmp_path / "cmp" / "compare.md").read_text().splitlines()
+    assert table[0].startswith("| mesh | method | valid") and len(table) == 2 + len(methods)
+    assert all(line.count("|") == table[0].count("|") for line in table)
+
+
+def test_compare_records_a_failed_solve_as_a_row(tmp_path):
+    p = run("compare", MODELS / "cylinder.off", "--out", tmp_path, "--methods", "sphere_nlp:equal-areas",
+            "--max-time", "1e-6", "--quiet")
+    assert p.returncode == 0 and p.stderr == ""
+    (row,) = json.loads((tmp_path / "compare.json").read_text())
+    assert row["valid"] is False and "failed" in row["status"]
+
+
+def test_compare_rejects_unknown_methods_and_bad_meshes_before_running(tmp_path):
+    out = tmp_path / "cmp"
+    p = run("compare", MODELS / "cylinder.off", "--out", out, "--methods", "conformal,nonsense")
+    assert p.returncode == 2 and "unknown method 'nonsense'" in p.stderr and not out.exists()
+    garbage = tmp_path / "garbage.off"
+    garbage.write_text("OFF\n4 4 0\n0 0 0\n")
+    p = run("compare", MODELS / "cylinder.off", garbage, "--out", out, "--methods", "conformal")
+    assert p.returncode == 2 and "garbage.off" in p.stderr and "Traceback" not in p.stderr
+    assert not out.exists()                                   # the good mesh did not run either
+    p = run("compare", tmp_path / "missing.off", "--out", out)
+    assert p.returncode == 2 and "missing.off" in p.stderr and not out.exists()

@@ -1,0 +1,286 @@
+"""Compare sphere_nlp with baseline maps: ``python -m sphere_nlp compare MESH... --out DIR``.
+
+Every method runs on every mesh; each (mesh, method) pair is one row of ``DIR/compare.json`` and of the
+Markdown table ``DIR/compare.md``, with the validity and distortion of :func:`sphere_nlp.metrics.
+distortion_summary` and the wall-clock time. A method that fails (a solve that does not converge, a map
+with flipped triangles, an exception) is a row with ``valid`` false and a ``status`` saying why, not an
+error: both files are rewritten atomically after every row, so an interrupted run keeps what it did.
+
+Methods: ``sphere_nlp:<mode>`` for the four target modes (``sphere_nlp`` selects all four),
+``conformal``, ``cmcf``, ``alexa`` and ``tutte-projection`` (see :mod:`sphere_nlp.baselines`).
+
+Exit status: 0 all rows written (whatever their validity); 2 an unreadable or invalid mesh, an unknown
+method, or an output folder that cannot be written (nothing run).
+"""
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import errors
+from .metrics import SUMMARY_KEYS, distortion_summary
+from .targets import MODES
+
+SPHERE_NLP_METHODS = tuple("sphere_nlp:" + mode for mode in MODES)
+BASELINE_METHODS = ("conformal", "cmcf", "alexa", "tutte-projection")
+METHODS = SPHERE_NLP_METHODS + BASELINE_METHODS
+
+# The columns of compare.md: (row key, header, format).
+TABLE_COLUMNS = (("mesh", "mesh", "%s"), ("method", "method", "%s"), ("valid", "valid", "%s"),
+                 ("flipped", "flipped", "%d"), ("mean_abs_angle_diff_deg", "mean abs Δangle (°)", "%.2f"),
+                 ("qc_mean", "QC mean", "%.3f"), ("qc_max", "QC max", "%.3g"),
+                 ("mean_abs_log_area", "mean abs log area ratio", "%.3f"), ("time_s", "time (s)", "%.2f"),
+                 ("status", "status", "%s"))
+
+
+def parse_methods(text):
+    """Method names from a comma-separated list; ``sphere_nlp`` expands to the four modes.
+
+    Examples
+    --------
+    >>> parse_methods("sphere_nlp:equal-areas,tutte-projection")
+    ['sphere_nlp:equal-areas', 'tutte-projection']
+    >>> len(parse_methods("sphere_nlp,cmcf"))
+    5
+    """
+    methods = []
+    for name in (part.strip() for part in text.split(",")):
+        expanded = SPHERE_NLP_METHODS if name == "sphere_nlp" else (name,)
+        for method in expanded:
+            if method not in METHODS:
+                raise errors.UsageError("unknown method %r; choose from %s (or sphere_nlp for all four modes)"
+                                        % (name, ", ".join(METHODS)))
+            if method not in methods:
+                methods.append(method)
+    if not methods:
+        raise errors.UsageError("no method given")
+    return methods
+
+
+def _run_baseline(method, vertices, faces):
+    """Positions of a baseline and a note (iterations for Alexa)."""
+    from . import baselines
+
+    if method == "conformal":
+        return baselines.conformal_map(vertices, faces), ""
+    if method == "cmcf":
+        return baselines.cmcf_map(vertices, faces), ""
+    if method == "tutte-projection":
+        return baselines.tutte_projection(vertices, faces), ""
+    relaxed = baselines.alexa_relaxation(vertices, faces)
+    return relaxed.positions, "%d iterations, %s" % (relaxed.iterations,
+                                                     "converged" if relaxed.converged else "not converged")
+
+
+def _metrics(mesh_vertices, positions, faces):
+    """distortion_summary, or all None (and invalid) when a method produced no usable positions."""
+    if positions is None or not np.isfinite(positions).all():
+        return {**dict.fromkeys(SUMMARY_KEYS), "valid": False}
+    return distortion_summary(mesh_vertices, positions, faces)
+
+
+def run_method(method, mesh, prepared, max_time=None):
+    """One row: run ``method`` on a loaded mesh and measure it.
+
+    Parameters
+    ----------
+    method : str
+        One of :data:`METHODS`.
+    mesh : (vertices, faces)
+        The mesh as read (sphere_nlp repairs it itself).
+    prepared : sphere_nlp.repair.PreparedMesh
+        The same mesh repaired, what the baselines run on and the metrics compare with.
+    max_time : float, optional
+        Wall-clock limit per IPOPT stage for sphere_nlp methods.
+
+    Returns
+    -------
+    dict
+        ``method``, ``valid``, ``status``, ``note``, ``time_s`` and the keys of
+        :func:`~sphere_nlp.metrics.distortion_summary` (None where the method produced no positions).
+    """
+    from .api import parameterize, solve_failure_message
+
+    clock = time.perf_counter()
+    note = ""
+    try:
+        if method in SPHERE_NLP_METHODS:
+            result = parameterize(mesh, target=method.split(":", 1)[1], max_time=max_time, check=False)
+            elapsed = time.perf_counter() - clock
+            positions = result.vertices
+            if result.success:
+                status = "certified"
+            elif not result.solved:
+                status = solve_failure_message(result.status, result.iterations)
+            else:
+                status = "certificate failed: " + result.certificate.reason
+            note = "%d iterations" % result.iterations
+        else:
+            positions, note = _run_baseline(method, prepared.vertices, prepared.faces)
+            elapsed = time.perf_counter() - clock
+            status = ""
+    except (MemoryError, errors.SphereNLPError, ArithmeticError, ValueError, RuntimeError,
+            np.linalg.LinAlgError) as exc:
+        # A method that breaks is a result of the comparison, not the end of it.
+        elapsed = time.perf_counter() - clock
+        positions, status = None, "error: %s: %s" % (type(exc).__name__, exc)
+    row = {"method": method}
+    with np.errstate(all="ignore"):
+        row.update(_metrics(prepared.vertices, positions, prepared.faces))
+    if method in SPHERE_NLP_METHODS and positions is not None:
+        row["valid"] = bool(result.success)         # solved to tolerance *and* certified
+    if not status:
+        status = "valid" if row["valid"] else ("invalid: %s flipped" % row["flipped"]
+                                               if row["flipped"] else "invalid")
+    row.update(time_s=round(elapsed, 4), status=status, note=note)
+    return row
+
+
+def markdown_table(rows):
+    """The rows as a Markdown table (None shows as an empty cell).
+
+    Examples
+    --------
+    >>> print(markdown_table([{"mesh": "m.off", "method": "cmcf", "valid": True, "flipped": 0,
+    ...                        "mean_abs_angle_diff_deg": 1.0, "qc_mean": 1.1, "qc_max": None,
+    ...                        "mean_abs_log_area": 0.2, "time_s": 0.5, "status": "valid"}]))
+    | mesh | method | valid | flipped | mean abs Δangle (°) | QC mean | QC max | mean abs log area ratio | time (s) | status |
+    |---|---|---|---|---|---|---|---|---|---|
+    | m.off | cmcf | True | 0 | 1.00 | 1.100 |  | 0.200 | 0.50 | valid |
+    """
+    lines = ["| " + " | ".join(header for _, header, _ in TABLE_COLUMNS) + " |",
+             "|" + "---|" * len(TABLE_COLUMNS)]
+    for row in rows:
+        cells = []
+        for key, _, fmt in TABLE_COLUMNS:
+            value = row.get(key)
+            cell = "" if value is None else fmt % value
+            cells.append(cell.replace("|", "\\|").replace("\n", " "))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_outputs(out_dir, rows):
+    """Write ``compare.json`` and ``compare.md`` atomically."""
+    from .mesh_io import atomic_output, write_json
+
+    write_json(Path(out_dir) / "compare.json", rows)
+    with atomic_output(Path(out_dir) / "compare.md") as out:
+        out.write(markdown_table(rows) + "\n")
+
+
+def load_meshes(paths):
+    """Read and check every mesh before anything runs: [(name, (V, F), PreparedMesh)].
+
+    Raises a :class:`~sphere_nlp.errors.MeshInputError` naming the file for the first bad one.
+    """
+    from .mesh_io import load_mesh
+    from .repair import prepare_mesh
+
+    loaded = []
+    for path in paths:
+        try:
+            vertices, faces = load_mesh(path)
+            prepared = prepare_mesh(vertices, faces)
+        except errors.MeshInputError as exc:
+            if str(path) in str(exc):
+                raise
+            raise type(exc)("%s: %s" % (path, exc)) from None
+        loaded.append((Path(path).name, (vertices, faces), prepared))
+    return loaded
+
+
+def compare(paths, out_dir, methods=METHODS, max_time=None, progress=None):
+    """Run ``methods`` on every mesh in ``paths``; write and return the rows.
+
+    Parameters
+    ----------
+    paths : list of str or Path
+    out_dir : str or Path
+        Created if missing; receives ``compare.json`` and ``compare.md`` (rewritten after every row).
+    methods : list of str
+        Names from :data:`METHODS`.
+    max_time : float, optional
+        Wall-clock limit per IPOPT stage for the sphere_nlp methods.
+    progress : callable(str), optional
+        Receives one line per row.
+
+    Returns
+    -------
+    list of dict
+        One row per (mesh, method): ``mesh``, ``method``, ``n_vertices``, ``valid``, ``flipped``, the
+        other :func:`~sphere_nlp.metrics.distortion_summary` keys, ``time_s``, ``status``, ``note``.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from sphere_nlp.shapes import write_models
+    >>> folder = tempfile.mkdtemp()
+    >>> write_models(folder)
+    >>> rows = compare([folder + "/cylinder.off"], folder, methods=["tutte-projection"])
+    >>> rows[0]["method"], rows[0]["valid"], rows[0]["flipped"]
+    ('tutte-projection', True, 0)
+    """
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise errors.UsageError("unknown method(s) %s; choose from %s" % (", ".join(unknown), ", ".join(METHODS)))
+    meshes = load_meshes(paths)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name, mesh, prepared in meshes:
+        for method in methods:
+            row = {"mesh": name, "method": method, "n_vertices": len(prepared.vertices),
+                   **run_method(method, mesh, prepared, max_time=max_time)}
+            rows.append(row)
+            write_outputs(out_dir, rows)
+            if progress:
+                qc = row.get("qc_mean")
+                progress("%s: %s: %s, QC mean %s, %.2f s" % (name, method, row["status"],
+                                                              "-" if qc is None else "%.3f" % qc, row["time_s"]))
+    return rows
+
+
+def main(argv=None):
+    """``python -m sphere_nlp compare MESH... --out DIR [--methods ...] [--max-time S]``."""
+    parser = argparse.ArgumentParser(
+        prog="sphere_nlp compare",
+        description="Map meshes with sphere_nlp's four target modes and with baseline methods; write "
+                    "validity and distortion of every map to DIR/compare.json and DIR/compare.md.")
+    parser.add_argument("meshes", nargs="+", metavar="MESH", help="input meshes")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    parser.add_argument("--methods", default=",".join(METHODS),
+                        help="comma-separated, from %s; 'sphere_nlp' = its four modes (default: all)"
+                             % ", ".join(METHODS))
+    parser.add_argument("--max-time", type=float, metavar="SECONDS",
+                        help="wall-clock limit per IPOPT stage for the sphere_nlp methods")
+    parser.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exit_:
+        return int(exit_.code or 0)
+
+    def say(line):
+        if not args.quiet:
+            print("compare: " + line, file=sys.stderr, flush=True)
+
+    try:
+        methods = parse_methods(args.methods)
+        say("%d mesh(es) x %d method(s) -> %s" % (len(args.meshes), len(methods), args.out))
+        rows = compare(args.meshes, args.out, methods=methods, max_time=args.max_time, progress=say)
+    except errors.SphereNLPError as exc:
+        print("sphere_nlp compare: error: %s" % exc, file=sys.stderr)
+        return exc.exit_status
+    except OSError as exc:
+        print("sphere_nlp compare: error: cannot write to %s: %s" % (args.out, exc.strerror or exc),
+              file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("sphere_nlp compare: interrupted; the rows done so far are in %s" % args.out, file=sys.stderr)
+        return 130
+    say("wrote %s and %s (%d rows, %d valid)" % (Path(args.out) / "compare.json", Path(args.out) / "compare.md",
+                                                 len(rows), sum(bool(r["valid"]) for r in rows)))
+    return 0
