@@ -96,6 +96,8 @@ class SphericalParameterization:
         max and RMS |angle from positions - solved angle| (radians) and the max relative mismatch of
         edge chords against those of the solved angles; ``walk_s`` and ``correction_s`` seconds.
     peak_rss_mb : float
+    start : str
+        The solve's starting point: "conformal", "embedding", "embedding-uncentred" or "linear".
     """
 
     vertices: np.ndarray
@@ -121,6 +123,7 @@ class SphericalParameterization:
     repairs: list = field(default_factory=list)
     unfold_info: dict = field(default_factory=dict)
     peak_rss_mb: float = 0.0
+    start: str = ""
 
     def __repr__(self):
         return ("SphericalParameterization(%d vertices, target=%r, status=%r, certified=%s, %.2f s)"
@@ -156,6 +159,7 @@ class SphericalParameterization:
             "faces": int(len(self.faces)),
             "target": self.target,
             "formulation": self.formulation,
+            "start": self.start,
             "success": bool(self.success),
             "status": self.status,
             "iterations": int(self.iterations),
@@ -222,9 +226,11 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         Extra IPOPT options.
     progress : callable(stage, iteration, objective, violation, elapsed), optional
         Called once per IPOPT iteration.
-    start : {"embedding", "linear"}, optional
-        Starting point of the solve: a valid spherical triangulation (default for log-chord) or the
-        paper's linear least-squares start (default for faithful and substituted).
+    start : {"auto", "conformal", "embedding", "linear"}, optional
+        Starting point of the solve: a valid spherical triangulation, either the Mobius-centred
+        conformal map when it is bijective or the convex embedding (``auto``, default for log-chord;
+        see :func:`sphere_nlp.solve.starting_positions`), or the paper's linear least-squares start
+        (default for faithful and substituted).
     check : bool
         Raise :class:`SolveError` / :class:`CertificateError` on failure (default). With False the
         result is returned with ``success=False`` instead.
@@ -291,7 +297,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     lap("build")
     solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
                             max_iter=max_iter, max_time=max_time, progress=progress,
-                            vertices=vertices, start=start)
+                            vertices=prepared.normalised_vertices, start=start)
     lap("solve")
     # Symbolic derivatives and IPOPT set-up happen inside the solve; book them as build time.
     build_s = sum(s["build_s"] for s in solution.stages)
@@ -320,7 +326,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         max_constraint_violation=solution.max_constraint_violation, max_angle_error=angle_error,
         certificate=certificate, vertex_map=prepared.vertex_map, solved=solution.success,
         stages=solution.stages, timings=timings, repairs=prepared.repairs,
-        unfold_info=unfold_info, peak_rss_mb=peak_rss_mb())
+        unfold_info=unfold_info, peak_rss_mb=peak_rss_mb(), start=solution.start)
     if check and not solution.success:
         raise errors.SolveError(solve_failure_message(solution.status, solution.iterations), result)
     if check and not certificate.valid:

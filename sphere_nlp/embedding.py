@@ -165,3 +165,43 @@ def convex_embedding(connectivity, vertices=None, weights="cotan", outer_face=No
     if np.sum(signed_solid_angles(X, connectivity.faces)) < 0:
         X[:, 0] = -X[:, 0]                      # the lift came out mirrored
     return X
+
+
+def mobius_centre(positions, weights=None, max_iter=100, tol=1e-9):
+    """Move points on the unit sphere by a Mobius transformation until their weighted mean is 0.
+
+    A spherical map is only defined up to Mobius transformations for conformal purposes, and a
+    Tutte-type or harmonic map typically crowds most of the mesh into a small cap. Centring spreads
+    it over the sphere (each step is the hyperbolic translation taking the current weighted mean c
+    to the origin, damped by 1/2), which moves the start much closer to every target mode. Small
+    triangles keep their orientation; the caller still certifies the result.
+
+    Parameters
+    ----------
+    positions : (n, 3) array of unit vectors
+    weights : (n,) array, optional
+        Non-negative weights (e.g. vertex areas of the 3D mesh); uniform by default.
+
+    Returns
+    -------
+    (n, 3) array of unit vectors.
+
+    Examples
+    --------
+    >>> X = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0.0]])
+    >>> bool(np.linalg.norm(mobius_centre(X).mean(0)) < 1e-8)
+    True
+    """
+    X = np.asarray(positions, float).copy()
+    w = np.ones(len(X)) if weights is None else np.asarray(weights, float)
+    w = w / w.sum()
+    for _ in range(max_iter):
+        c = w @ X
+        if np.linalg.norm(c) < tol:
+            break
+        c = 0.5 * c
+        d = X - c
+        # The ball automorphism x -> ((1-|c|^2)(x-c) - |x-c|^2 c) / (1 - 2<x,c> + |c|^2 |x|^2), |x| = 1.
+        X = ((1 - c @ c) * d - np.einsum("ij,ij->i", d, d)[:, None] * c) / (1 - 2 * X @ c + c @ c)[:, None]
+        X /= np.linalg.norm(X, axis=1, keepdims=True)
+    return X

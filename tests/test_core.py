@@ -28,7 +28,7 @@ def test_regular_tilings_closed_form(shape, angle, formulation):
     t = len(r.faces)
     np.testing.assert_allclose(r.angles, angle, atol=1e-10)
     np.testing.assert_allclose(r.excess, 4 * np.pi / t, atol=1e-10)
-    assert r.objective < 1e-18
+    assert r.objective < 1e-16      # the optimum is 0; IPOPT stops at tol 1e-8 on the gradient
     assert r.certificate.valid
     np.testing.assert_allclose(signed_solid_angles(r.vertices, r.faces), 4 * np.pi / t, atol=1e-12)
 
