@@ -97,7 +97,8 @@ class SphericalParameterization:
         edge chords against those of the solved angles; ``walk_s`` and ``correction_s`` seconds.
     peak_rss_mb : float
     start : str
-        The solve's starting point: "conformal", "embedding", "embedding-uncentred" or "linear".
+        The solve's starting point: "conformal", "conformal-untangled", "embedding",
+        "embedding-uncentred" or "linear".
     """
 
     vertices: np.ndarray

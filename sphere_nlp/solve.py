@@ -76,7 +76,8 @@ class AngleSolution:
     initial_angles, initial_excess : arrays
         The starting point.
     start : str
-        Which starting point: "conformal", "embedding", "embedding-uncentred" or "linear".
+        Which starting point: "conformal", "conformal-untangled", "embedding",
+        "embedding-uncentred" or "linear".
     """
 
     angles: np.ndarray
@@ -186,13 +187,15 @@ def starting_positions(connectivity, vertices=None, kind="auto"):
     original-angles: 7 iterations instead of > 330 s from the embedding), but not always bijective.
     ``"embedding"``: the convex embedding (:func:`sphere_nlp.embedding.convex_embedding`), valid by
     construction, Mobius-centred when that keeps it valid. ``"auto"``: the conformal map if it
-    certifies, else the embedding.
+    certifies, else the conformal map with its flipped triangles repaired by
+    :func:`sphere_nlp.untangle.untangle` if that certifies, else the embedding.
 
     Returns
     -------
     positions : (n, 3) array of unit vectors, a certified spherical triangulation
     kind : str
-        Which start was used: "conformal", "embedding" or "embedding-uncentred".
+        Which start was used: "conformal", "conformal-untangled", "embedding" or
+        "embedding-uncentred".
     """
     from .certify import certify
     from .embedding import convex_embedding, mobius_centre
@@ -207,8 +210,15 @@ def starting_positions(connectivity, vertices=None, kind="auto"):
         from .baselines import conformal_map
         with np.errstate(all="ignore"):
             positions = mobius_centre(conformal_map(vertices, faces), weights)
-        if np.isfinite(positions).all() and certify(positions, faces).valid:
-            return positions, "conformal"
+        if np.isfinite(positions).all():
+            if certify(positions, faces).valid:
+                return positions, "conformal"
+            # A few flipped triangles (knight 57, cheburashka 38, max_planck 2, nefertiti 1):
+            # re-embed small disks around them, which keeps the map conformal elsewhere.
+            from .untangle import untangle
+            repaired, _ = untangle(positions, faces, mesh_vertices=vertices)
+            if repaired is not None and certify(repaired, faces).valid:
+                return repaired, "conformal-untangled"
     positions = convex_embedding(connectivity, vertices, weights="uniform")
     centred = mobius_centre(positions, weights)
     if certify(centred, faces).valid:
