@@ -78,8 +78,7 @@ def test_finding_e_black_triangle_stays_right_angled(fig3):
     cylinder_angles = np.array(panels["a"]["black_triangle_angles_deg"])       # 32.8, 90, 57.2
     assert min(abs(e - 90)) < 10                                                 # measured 89.9
     # The right angle stays at the same corner, and the whole shape is kept (measured within 5.7
-    # degrees). This matters: (d)'s black triangle also has an 87-degree corner, but at the corner
-    # that was 57 degrees on the cylinder.
+    # degrees); the other maps reshape it (equal areas: 27, 26, 132 degrees).
     assert np.argmin(abs(e - 90)) == np.argmin(abs(cylinder_angles - 90))
     assert np.abs(e - cylinder_angles).max() < 8
     # Aiming for equal angles makes it near-equilateral instead.
