@@ -15,6 +15,7 @@ from .mesh_io import check_mesh_path, load_mesh, write_json, write_mesh, write_n
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS
 from .solve import solve_angles
 from .targets import MODES, make_targets
+from .texture import spherical_uv
 from .unfold import unfold
 
 
@@ -127,20 +128,49 @@ class SphericalParameterization:
                 % (len(self.vertices), self.target, self.status, self.certificate.valid,
                    self.timings.get("total", float("nan"))))
 
-    def write(self, path):
-        """Write the sphere mesh (OFF, OBJ or PLY by extension).
-
-        Refuses (raising :class:`SolveError` or :class:`CertificateError`, writing nothing) a result
-        whose solve stopped short, e.g. at an iteration or time limit, even if its positions happen to
-        pass the certificate, and any uncertified result.
-        """
+    def _refuse_unless_certified(self):
+        """Raise (so nothing is written) unless the solve finished and the sphere is certified."""
         if not self.solved:
             raise errors.SolveError("refusing to write: "
                                     + solve_failure_message(self.status, self.iterations), self)
         if not self.certificate.valid:
             raise errors.CertificateError("refusing to write an uncertified sphere: "
                                           + self.certificate.reason, self)
-        write_mesh(path, self.vertices, self.faces)
+
+    def texture_coordinates(self):
+        """Per-corner (u, v) = (longitude / 2 pi + 0.5, latitude / pi + 0.5) of the sphere, (t, 3, 2).
+
+        See :mod:`sphere_nlp.texture` for the convention, the seam and the poles.
+        """
+        return spherical_uv(self.vertices, self.faces)
+
+    def write(self, path):
+        """Write the sphere mesh (OFF, OBJ or PLY by extension).
+
+        An OBJ also carries texture coordinates (:meth:`texture_coordinates`, ``f v/vt`` faces), so
+        an equirectangular image (a world map, an environment map) wraps onto it as onto a globe.
+
+        Refuses (raising :class:`SolveError` or :class:`CertificateError`, writing nothing) a result
+        whose solve stopped short, e.g. at an iteration or time limit, even if its positions happen to
+        pass the certificate, and any uncertified result.
+        """
+        self._refuse_unless_certified()
+        check_mesh_path(path)
+        uv = self.texture_coordinates() if Path(path).suffix.lower() == ".obj" else None
+        write_mesh(path, self.vertices, self.faces, uv)
+
+    def write_textured_input(self, path):
+        """Write the *input* mesh as OBJ with the sphere's texture coordinates.
+
+        This is the file to paint or texture: positions are the input's (the repaired vertex set, see
+        ``vertex_map``), ``vt`` are the longitude and latitude of each corner on the sphere, so an
+        equirectangular image wraps onto the model through the spherical map. Refuses uncertified
+        results like :meth:`write`.
+        """
+        self._refuse_unless_certified()
+        if Path(path).suffix.lower() != ".obj":
+            raise errors.UsageError("cannot write %s: a textured mesh must be .obj" % path)
+        write_mesh(path, self.input_vertices, self.faces, self.texture_coordinates())
 
     def save_solution(self, path):
         """Write vertices, faces, angles, excess, the targets and the vertex map to an .npz archive."""
