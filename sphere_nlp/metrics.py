@@ -1,0 +1,241 @@
+"""Distortion of a spherical map, computed from the sphere positions and the input mesh.
+
+Every measure compares each input triangle with its image: the *chord triangle* (the flat triangle
+spanned by the three sphere positions) for angles and the affine map, the *spherical triangle*
+(signed solid angle, :func:`sphere_nlp.certify.signed_solid_angles`) for areas. All functions take
+numpy arrays and return numpy arrays, except :func:`distortion_summary`, which returns plain
+JSON-safe Python numbers.
+
+Conventions for flipped triangles (signed solid angle <= 0, i.e. clockwise seen from outside the
+sphere, or degenerate): :func:`quasi_conformal_ratio` is ``inf`` and :func:`area_log_ratio` is
+``nan`` (``-inf`` for zero area), while :func:`angle_distortion` is finite (planar angles are
+unsigned, so it cannot see a flip; the ``flipped`` count of the summary does).
+"""
+
+import numpy as np
+
+from .certify import certify, signed_solid_angles, spherical_angles
+
+SUMMARY_KEYS = ("valid", "flipped", "degree", "max_norm_error", "mean_abs_angle_diff_deg",
+                "max_abs_angle_diff_deg", "qc_mean", "qc_max", "mean_abs_log_area", "area_cv",
+                "min_spherical_angle_deg")
+
+
+def _arrays(vertices, faces):
+    return np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64)
+
+
+def corner_angles(vertices, faces):
+    """Planar corner angles of each triangle, (t, 3), ``[i, j]`` at vertex ``faces[i, j]``.
+
+    Works for any triangles in 3D, e.g. the input mesh or the chord triangles of sphere positions.
+    The angle is ``atan2(|cross|, dot)`` of the two edge vectors, accurate for needle-thin triangles
+    (``arccos`` of a normalised dot product loses all digits near 0 and pi). Angles are unsigned, in
+    [0, pi]; a degenerate triangle (coincident corners) gets 0 at the coincident corners.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> V, F = octahedron()
+    >>> bool(np.allclose(corner_angles(V, F), np.pi / 3))
+    True
+    """
+    vertices, faces = _arrays(vertices, faces)
+    P = vertices[faces]                                   # (t, 3 corners, 3 coords)
+    to_next = np.roll(P, -1, axis=1) - P
+    to_prev = np.roll(P, 1, axis=1) - P
+    cross = np.linalg.norm(np.cross(to_next, to_prev), axis=2)
+    dot = np.einsum("tjk,tjk->tj", to_next, to_prev)
+    return np.arctan2(cross, dot)
+
+
+def angle_distortion(mesh_vertices, sphere_vertices, faces):
+    """Absolute difference of chord-triangle and 3D corner angles, (t, 3), radians.
+
+    Zero for every triangle exactly when each chord triangle is similar to its input triangle
+    (e.g. a uniformly scaled mesh). Blind to flips; see the module docstring.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import icosphere
+    >>> V, F = icosphere(1)
+    >>> float(angle_distortion(V, 3 * V, F).max()) < 1e-12
+    True
+    """
+    return np.abs(corner_angles(sphere_vertices, faces) - corner_angles(mesh_vertices, faces))
+
+
+def _triangle_frames(vertices, faces):
+    """Edge vectors of each triangle in its own orthonormal frame, (t, 2, 2), columns e1 and e2.
+
+    The frame's x axis is along the first edge and its y axis in the triangle's plane toward the third
+    corner, so the second coordinate of e2 is >= 0 (twice the area over |e1|).
+    """
+    P = vertices[faces]
+    e1 = P[:, 1] - P[:, 0]
+    e2 = P[:, 2] - P[:, 0]
+    length1 = np.linalg.norm(e1, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x2 = np.einsum("ij,ij->i", e1, e2) / length1
+        y2 = np.linalg.norm(np.cross(e1, e2), axis=1) / length1
+    frames = np.zeros((len(faces), 2, 2))
+    frames[:, 0, 0] = length1
+    frames[:, 0, 1] = x2
+    frames[:, 1, 1] = y2
+    return frames
+
+
+def quasi_conformal_ratio(mesh_vertices, sphere_vertices, faces):
+    """Ratio sigma1 / sigma2 >= 1 of each triangle's affine map from 3D triangle to chord triangle, (t,).
+
+    1 for a similarity (angle-preserving), large for a strongly sheared or stretched triangle;
+    ``inf`` for a flipped or degenerate image (signed solid angle <= 0 about the origin, the centre of
+    the sphere) or a degenerate input triangle.
+
+    The Jacobian J is 2 x 2 in per-triangle frames. Writing J = [[a, b], [c, d]], its conformal part
+    has size Q = |(a + d, c - b)| / 2 and its anti-conformal part R = |(a - d, c + b)| / 2; then
+    sigma1 = Q + R, sigma2 = Q - R, so the ratio is computed without the cancellation of
+    ``sqrt(K**2 - 1)``-style formulas near 1.
+
+    Examples
+    --------
+    >>> V = np.array([[0, 0, 1], [1, 0, 1], [0, 1, 1]], float)
+    >>> F = np.array([[0, 1, 2]])
+    >>> quasi_conformal_ratio(V, V * [2, 1, 1], F).round(12)   # stretch x by 2
+    array([2.])
+    """
+    mesh_vertices, faces = _arrays(mesh_vertices, faces)
+    sphere_vertices = np.asarray(sphere_vertices, dtype=float)
+    source = _triangle_frames(mesh_vertices, faces)
+    image = _triangle_frames(sphere_vertices, faces)
+    # J @ source = image for the edge vectors; source is upper triangular, invert it in closed form.
+    s11, s12, s22 = source[:, 0, 0], source[:, 0, 1], source[:, 1, 1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inverse = np.zeros_like(source)
+        inverse[:, 0, 0] = 1 / s11
+        inverse[:, 0, 1] = -s12 / (s11 * s22)
+        inverse[:, 1, 1] = 1 / s22
+        J = image @ inverse
+        a, b, c, d = J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1]
+        Q = 0.5 * np.hypot(a + d, c - b)
+        R = 0.5 * np.hypot(a - d, c + b)
+        ratio = (Q + R) / (Q - R)
+    bad = ~(signed_solid_angles(sphere_vertices, faces) > 0) | ~(Q > R) | ~np.isfinite(ratio)
+    ratio[bad] = np.inf
+    return ratio
+
+
+def normalised_areas_3d(mesh_vertices, faces):
+    """3D triangle areas scaled so that they sum to 4 pi (the area of the unit sphere), (t,)."""
+    mesh_vertices, faces = _arrays(mesh_vertices, faces)
+    P = mesh_vertices[faces]
+    areas = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
+    return areas * (4 * np.pi / areas.sum())
+
+
+def area_log_ratio(mesh_vertices, sphere_vertices, faces):
+    """log(spherical area / normalised 3D area) of each triangle, (t,).
+
+    The spherical area is the signed solid angle of the triangle's image, the 3D areas are scaled to
+    sum to 4 pi, so 0 means the triangle keeps its share of the surface, +log 2 that it doubles it.
+    ``nan`` for flipped images (negative solid angle), ``-inf`` for zero-area images.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> V, F = octahedron()
+    >>> bool(np.allclose(area_log_ratio(V, V, F), 0))   # 8 equal triangles, each pi / 2
+    True
+    """
+    mesh_vertices, faces = _arrays(mesh_vertices, faces)
+    omega = signed_solid_angles(np.asarray(sphere_vertices, dtype=float), faces)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.log(omega / normalised_areas_3d(mesh_vertices, faces))
+
+
+def per_vertex_mean(faces, face_values, n_vertices):
+    """Mean of the finite values of the faces around each vertex, (n,), e.g. to colour a picture.
+
+    Non-finite face values (flipped triangles) are left out; a vertex with none gets ``nan``.
+
+    Examples
+    --------
+    >>> per_vertex_mean(np.array([[0, 1, 2], [0, 2, 3]]), np.array([1.0, 3.0]), 4)
+    array([2., 1., 2., 3.])
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    face_values = np.asarray(face_values, dtype=float)
+    finite = np.isfinite(face_values)
+    total = np.zeros(n_vertices)
+    count = np.zeros(n_vertices)
+    for k in range(3):
+        np.add.at(total, faces[finite, k], face_values[finite])
+        np.add.at(count, faces[finite, k], 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return total / count
+
+
+def _json_float(value):
+    """A float for JSON: non-finite values become None (JSON has no inf or nan)."""
+    value = float(value)
+    return value if np.isfinite(value) else None
+
+
+def distortion_summary(mesh_vertices, sphere_vertices, faces):
+    """Validity and distortion of a spherical map in one JSON-safe dict.
+
+    Keys
+    ----
+    valid, flipped, degree, max_norm_error
+        From :func:`sphere_nlp.certify.certify` (bool, int, float, float).
+    mean_abs_angle_diff_deg, max_abs_angle_diff_deg
+        Mean and max of :func:`angle_distortion` over all corners, degrees.
+    qc_mean, qc_max
+        :func:`quasi_conformal_ratio`, mean weighted by 3D area and max, over the triangles where it is
+        finite (the ``flipped`` ones are left out and counted there instead).
+    mean_abs_log_area
+        Mean of |:func:`area_log_ratio`| over the triangles where it is finite (not weighted).
+    area_cv
+        Coefficient of variation (std / mean) of the signed spherical triangle areas, all triangles:
+        0 when all triangles have equal area on the sphere.
+    min_spherical_angle_deg
+        Smallest spherical corner angle (:func:`sphere_nlp.certify.spherical_angles`), degrees;
+        negative when a triangle is flipped.
+
+    A value that is not finite (no finite triangle to average over, positions with nan) is None.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> V, F = octahedron()
+    >>> s = distortion_summary(V, V, F)
+    >>> s["valid"], s["flipped"], s["qc_max"], round(s["min_spherical_angle_deg"], 9)
+    (True, 0, 1.0, 90.0)
+    """
+    mesh_vertices, faces = _arrays(mesh_vertices, faces)
+    sphere_vertices = np.asarray(sphere_vertices, dtype=float)
+    certificate = certify(sphere_vertices, faces)
+    angle_diff = np.degrees(angle_distortion(mesh_vertices, sphere_vertices, faces))
+    qc = quasi_conformal_ratio(mesh_vertices, sphere_vertices, faces)
+    qc_finite = np.isfinite(qc)
+    weights = normalised_areas_3d(mesh_vertices, faces)[qc_finite]
+    log_area = np.abs(area_log_ratio(mesh_vertices, sphere_vertices, faces))
+    log_area = log_area[np.isfinite(log_area)]
+    omega = signed_solid_angles(sphere_vertices, faces)
+    nan = float("nan")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        summary = {
+            "valid": bool(certificate.valid),
+            "flipped": int(certificate.flipped),
+            "degree": _json_float(certificate.degree),
+            "max_norm_error": _json_float(certificate.max_norm_error),
+            "mean_abs_angle_diff_deg": _json_float(angle_diff.mean()),
+            "max_abs_angle_diff_deg": _json_float(angle_diff.max()),
+            "qc_mean": _json_float((weights * qc[qc_finite]).sum() / weights.sum()
+                                   if qc_finite.any() else nan),
+            "qc_max": _json_float(qc[qc_finite].max() if qc_finite.any() else nan),
+            "mean_abs_log_area": _json_float(log_area.mean() if len(log_area) else nan),
+            "area_cv": _json_float(omega.std() / omega.mean()),
+            "min_spherical_angle_deg": _json_float(np.degrees(spherical_angles(sphere_vertices, faces).min())),
+        }
+    return summary
