@@ -11,6 +11,7 @@ import numpy as np
 from . import errors
 from .certify import Certificate, certify, spherical_angles
 from .repair import prepare_mesh
+from .metrics import distortion_summary
 from .mesh_io import check_mesh_path, load_mesh, write_json, write_mesh, write_npz
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS
 from .solve import solve_angles
@@ -172,6 +173,36 @@ class SphericalParameterization:
             raise errors.UsageError("cannot write %s: a textured mesh must be .obj" % path)
         write_mesh(path, self.input_vertices, self.faces, self.texture_coordinates())
 
+    def distortion(self):
+        """How far the map is from the input's angles and areas (a :mod:`~sphere_nlp.metrics` summary).
+
+        A dict with ``mean_abs_angle_diff_deg`` (mean |chord-triangle corner angle - input corner
+        angle|, degrees), ``mean_abs_log_area`` (mean |log(spherical area / input area scaled to total
+        4 pi)|), ``qc_mean``, ``qc_max``, ``area_cv``, ``min_spherical_angle_deg`` and the certificate's
+        fields. Measured against the input centred and scaled to unit size, so extreme coordinates
+        (1e-150, 1e150) give the same numbers as moderate ones.
+        """
+        return distortion_summary(_unit_size(self.input_vertices), self.vertices, self.faces)
+
+    def write_png(self, path, measure="area"):
+        """Write a PNG: the input mesh and the sphere coloured by distortion, and a checkerboarded mesh.
+
+        ``measure`` is "area" (log area ratio) or "angle" (angle distortion, degrees); see
+        :func:`sphere_nlp.picture.render_png`. Written atomically; refuses uncertified results like
+        :meth:`write`.
+        """
+        self._refuse_unless_certified()
+        if Path(path).suffix.lower() != ".png":
+            raise errors.UsageError("cannot write %s: a picture must be .png" % path)
+        from .picture import render_png           # matplotlib loads only when a picture is wanted
+
+        summary = self.distortion()
+        title = ("%s: %d vertices, mean angle distortion %.1f°, mean |log area ratio| %.3f"
+                 % (self.target, len(self.vertices), summary["mean_abs_angle_diff_deg"],
+                    summary["mean_abs_log_area"]))
+        render_png(path, _unit_size(self.input_vertices), self.vertices, self.faces, measure=measure,
+                   title=title)
+
     def save_solution(self, path):
         """Write vertices, faces, angles, excess, the targets and the vertex map to an .npz archive."""
         write_npz(path, vertices=self.vertices, faces=self.faces, angles=self.angles, excess=self.excess,
@@ -197,6 +228,7 @@ class SphericalParameterization:
             "timings_s": {k: round(float(v), 6) for k, v in self.timings.items()},
             "peak_rss_mb": round(float(self.peak_rss_mb), 1),
             "repairs": list(self.repairs),
+            "distortion": self.distortion() if np.isfinite(self.vertices).all() else None,
             "unfold": {k: (float(v) if isinstance(v, (float, np.floating))
                            else int(v) if isinstance(v, np.integer) else v)
                        for k, v in self.unfold_info.items()},
@@ -205,6 +237,17 @@ class SphericalParameterization:
     def write_report(self, path):
         """Write :meth:`report` as JSON."""
         write_json(path, self.report())
+
+
+def _unit_size(vertices):
+    """Vertices centred on their bounding box and scaled into [-1, 1]^3.
+
+    Angles and area ratios are unchanged; extreme coordinates (1e-150, 1e150) neither overflow nor
+    underflow in the cross products of the distortion measures.
+    """
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    size = float(np.max(high - low)) / 2 or 1.0
+    return (vertices - (low + high) / 2) / size
 
 
 def _as_arrays(mesh):
@@ -227,7 +270,7 @@ def _as_arrays(mesh):
 
 def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weight=None,
                  target_angles=None, target_excess=None, formulation=DEFAULT_FORMULATION, max_iter=None,
-                 max_time=None, ipopt_options=None, progress=None, start=None, check=True):
+                 max_time=None, ipopt_options=None, progress=None, on_stage=None, start=None, check=True):
     """Map a closed genus-0 triangle mesh onto the unit sphere without overlaps.
 
     Parameters
@@ -252,6 +295,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         Extra IPOPT options.
     progress : callable(stage, iteration, objective, violation, elapsed), optional
         Called once per IPOPT iteration.
+    on_stage : callable(name), optional
+        Called as each stage begins: "load", "build", "solve", "unfold", "certify".
     start : {"embedding", "linear"}, optional
         Starting point of the solve: a valid spherical triangulation (default for log-chord) or the
         paper's linear least-squares start (default for faithful and substituted).
@@ -303,14 +348,18 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     clock = time.perf_counter()
     run_started = clock
 
-    def lap(name):
+    def lap(name, next_stage=None):
         nonlocal clock
         now = time.perf_counter()
         timings[name] = timings.get(name, 0.0) + now - clock
         clock = now
+        if next_stage and on_stage is not None:
+            on_stage(next_stage)
 
+    if on_stage is not None:
+        on_stage("load")
     vertices, faces = _as_arrays(mesh)
-    lap("load")
+    lap("load", "build")
     prepared = prepare_mesh(vertices, faces)
     faces, connectivity = prepared.faces, prepared.connectivity
     # Targets are angles and area ratios, so the normalised copy gives the same ones without the
@@ -318,11 +367,11 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     targets = make_targets(target, prepared.normalised_vertices, faces, connectivity.vertex_degree,
                            angle_weight=angle_weight, area_weight=area_weight,
                            target_angles=target_angles, target_excess=target_excess)
-    lap("build")
+    lap("build", "solve")
     solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
                             max_iter=max_iter, max_time=max_time, progress=progress,
                             vertices=vertices, start=start)
-    lap("solve")
+    lap("solve", "unfold")
     # Symbolic derivatives and IPOPT set-up happen inside the solve; book them as build time.
     build_s = sum(s["build_s"] for s in solution.stages)
     timings["solve"] -= build_s
@@ -334,7 +383,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     else:
         positions = np.full((connectivity.n_vertices, 3), np.nan)
         unfold_info = {}
-    lap("unfold")
+    lap("unfold", "certify")
     certificate = certify(positions, faces)
     angle_error = float(np.max(np.abs(spherical_angles(positions, faces) - solution.angles)))
     if not np.isfinite(angle_error):
