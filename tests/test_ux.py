@@ -1,11 +1,18 @@
 """The user-facing parts: texture coordinates and textured OBJ, pictures, progress and summary, README."""
 
 import dataclasses
+import io
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 import sphere_nlp
+from sphere_nlp.cli import EXAMPLES, Progress, main
 from sphere_nlp.shapes import cylinder, icosphere, octahedron
 from sphere_nlp.texture import checker, pole_triangles, spherical_uv, uv_signed_areas
 
@@ -166,3 +173,222 @@ def test_uncertified_results_write_nothing(cylinder_result, tmp_path):
         with pytest.raises(sphere_nlp.CertificateError, match="refusing"):
             write(tmp_path / name)
     assert list(tmp_path.iterdir()) == []
+
+
+# --- picture -------------------------------------------------------------------------------------------
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_colours(path):
+    """The distinct RGB colours of a PNG (read back with matplotlib's own PNG reader)."""
+    import matplotlib.image
+
+    pixels = matplotlib.image.imread(str(path))
+    return np.unique((pixels[..., :3] * 255).round().astype(np.uint8).reshape(-1, 3), axis=0)
+
+
+@pytest.mark.parametrize("measure", ["area", "angle"])
+def test_png_is_a_real_picture(cylinder_result, tmp_path, measure):
+    out = tmp_path / "map.png"
+    cylinder_result.write_png(out, measure=measure)
+    data = out.read_bytes()
+    assert data[:8] == PNG_SIGNATURE and len(data) > 50_000
+    colours = png_colours(out)
+    assert len(colours) > 500                   # shading, a colour scale and a checkerboard, not a blank
+    # The checkerboard's red is there, and the colour scale's ends (blue and red for the area measure).
+    assert ((colours[:, 0] > 150) & (colours[:, 1] < 90) & (colours[:, 2] < 70)).any()
+    if measure == "area":
+        assert ((colours[:, 2] > 100) & (colours[:, 0] < 60)).any()
+    assert [p.name for p in tmp_path.iterdir()] == ["map.png"]        # no temporary file left
+
+
+def test_png_colour_limits_follow_the_distortion(cylinder_result, tmp_path):
+    from sphere_nlp.metrics import area_log_ratio
+    from sphere_nlp.picture import render_png
+
+    V, F = cylinder()
+    info = render_png(tmp_path / "a.png", V, cylinder_result.vertices, F)
+    log_area = area_log_ratio(V, cylinder_result.vertices, F)
+    low, high = info["colour_limits"]
+    assert low == -high and np.percentile(np.abs(log_area), 90) <= high <= np.abs(log_area).max()
+    assert info["drawn_triangles"][1] < len(F)               # the back of the sphere is culled
+    assert info["checker_levels"] == 3                        # small meshes get a fine checkerboard
+
+
+def test_png_refused_for_uncertified_results_and_bad_names(cylinder_result, tmp_path):
+    bad = dataclasses.replace(cylinder_result, certificate=dataclasses.replace(
+        cylinder_result.certificate, valid=False, reason="degree 0 instead of 1"))
+    with pytest.raises(sphere_nlp.CertificateError, match="refusing"):
+        bad.write_png(tmp_path / "x.png")
+    with pytest.raises(sphere_nlp.UsageError):
+        cylinder_result.write_png(tmp_path / "x.jpg")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_png_of_a_large_mesh_is_fast(tmp_path):
+    import time
+
+    from sphere_nlp.picture import render_png
+
+    V, F = icosphere(6)                                       # 81,920 triangles
+    X = V @ random_rotation(np.random.default_rng(2)).T
+    started = time.perf_counter()
+    render_png(tmp_path / "big.png", V * [1, 1, 0.5], X, F)
+    assert time.perf_counter() - started < 30
+
+
+# --- command line: progress, summary, examples, install ------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_cli(capsys, *args):
+    status = main([str(a) for a in args])
+    return status, capsys.readouterr().err
+
+
+def as_module_command(command):
+    """A README or --help command line as an argv for this interpreter (sphere-nlp = python -m sphere_nlp)."""
+    words = shlex.split(command)
+    if words[0] == "sphere-nlp":
+        words = words[1:]
+    else:
+        assert words[:3] == ["python", "-m", "sphere_nlp"], command
+        words = words[3:]
+    return [sys.executable, "-m", "sphere_nlp", *words]
+
+
+def checkout_env():
+    """Environment for a subprocess that imports this checkout's sphere_nlp, from any folder."""
+    import os
+
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep)
+                                                       if p])
+    return env
+
+
+def with_models(directory):
+    """A working folder holding the shipped models, as the examples expect (run from the checkout)."""
+    (directory / "models").symlink_to(ROOT / "models")
+    return directory
+
+
+def test_quiet_prints_nothing_on_success(tmp_path, capsys):
+    status, stderr = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.obj", "--png",
+                             tmp_path / "s.png", "--textured-input", tmp_path / "t.obj", "--quiet")
+    assert status == 0 and stderr == "" and capsys.readouterr().out == ""
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.obj", "s.png", "t.obj"]
+
+
+def test_summary_line_states_size_mode_time_certificate_and_distortion(tmp_path, capsys):
+    from sphere_nlp.metrics import distortion_summary
+
+    out = tmp_path / "s.off"
+    status, stderr = run_cli(capsys, MODELS / "cylinder.off", "-o", out, "--target", "original-areas")
+    assert status == 0
+    last = stderr.strip().splitlines()[-1]
+    match = re.fullmatch(r"wrote (.+): (\d+) vertices, original-areas, ([\d.]+) s, certified \(degree 1, "
+                         r"0 flipped\), mean angle distortion ([\d.]+)°, mean \|log area ratio\| ([\d.]+)", last)
+    assert match, last
+    assert match[1] == str(out) and int(match[2]) == 86 and 0 < float(match[3]) < 60
+    # The numbers are those of the written sphere against the input.
+    V, F = sphere_nlp.load_mesh(MODELS / "cylinder.off")
+    X, _ = sphere_nlp.load_mesh(out)
+    expected = distortion_summary(V, X, F)
+    assert float(match[4]) == pytest.approx(expected["mean_abs_angle_diff_deg"], abs=0.006)
+    assert float(match[5]) == pytest.approx(expected["mean_abs_log_area"], abs=0.0006)
+
+
+def test_failed_run_writes_no_picture_and_no_meshes(tmp_path, capsys):
+    import meshgen
+
+    source = tmp_path / "ellipsoid.off"
+    sphere_nlp.write_mesh(source, *meshgen.ellipsoid(2))
+    status, stderr = run_cli(capsys, source, "-o", tmp_path / "s.obj", "--png", tmp_path / "s.png",
+                             "--textured-input", tmp_path / "t.obj", "--max-iter", "1")
+    assert status == 1 and "nothing written" in stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["ellipsoid.off"]
+
+
+def test_bad_picture_or_texture_name_is_a_usage_error_before_solving(tmp_path, capsys):
+    for option, name in (("--png", "s.jpg"), ("--textured-input", "t.ply")):
+        status, stderr = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.off", option,
+                                 tmp_path / name)
+        assert status == 2 and "must end in" in stderr and "mapping" not in stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+class FakeTerminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_terminal_progress_is_one_line_finished_before_other_messages():
+    stream = FakeTerminal()
+    progress = Progress(stream=stream)
+    for stage in ("load", "build", "solve"):
+        progress.stage(stage)
+    progress.iteration("equality", 0, 12.5, 1e-3, 0.1)
+    progress.stage("unfold")
+    progress.say("repaired: 2 vertices merged")
+    text = stream.getvalue()
+    updates = text.split("\r\033[K")[1:]
+    assert [u.split(",")[0] for u in updates] == ["load", "build", "solve", "solve (equality): iteration 0",
+                                                  "unfold"]
+    assert "objective 12.5, constraint violation 1.00e-03" in updates[3]
+    # Only the last update is followed by a newline, right before the message.
+    assert text.count("\n") == 2 and text.endswith("unfold, 0.0 s\nrepaired: 2 vertices merged\n")
+    progress.finish_line()
+    assert stream.getvalue() == text                          # nothing pending: nothing added
+
+
+def test_log_progress_is_plain_periodic_lines():
+    stream = io.StringIO()
+    progress = Progress(stream=stream)
+    progress.say("sphere_nlp: mapping x.off")
+    for i in range(100):                                      # a fast solve: no line per iteration
+        progress.iteration("equality", i, 1.0, 0.0, 0.0)
+    progress.stage("unfold")
+    assert stream.getvalue() == "sphere_nlp: mapping x.off\n"
+    progress.last -= 10                                       # ... ten seconds later
+    progress.stage("certify")
+    assert stream.getvalue().splitlines()[-1].startswith("certify, ")
+    assert "\r" not in stream.getvalue() and "\033" not in stream.getvalue()
+
+
+def test_quiet_progress_writes_nothing():
+    stream = FakeTerminal()
+    progress = Progress(quiet=True, stream=stream)
+    progress.stage("load")
+    progress.iteration("equality", 0, 1.0, 0.0, 0.0)
+    progress.say("x")
+    progress.finish_line()
+    assert stream.getvalue() == ""
+
+
+def test_help_is_grouped_and_ends_with_three_runnable_examples(tmp_path):
+    help_text = subprocess.run([sys.executable, "-m", "sphere_nlp", "--help"], capture_output=True,
+                               text=True, env=checkout_env()).stdout
+    for group in ("output", "method", "solver limits", "messages"):
+        assert "\n%s" % group in help_text
+    assert help_text.rstrip().endswith(EXAMPLES.rstrip())
+    examples = [line.strip() for line in EXAMPLES.splitlines()[1:] if line.strip()]
+    assert len(examples) == 3
+    work = with_models(tmp_path)
+    for command in examples:
+        p = subprocess.run(as_module_command(command), capture_output=True, text=True, cwd=work,
+                           env=checkout_env())
+        assert p.returncode == 0, (command, p.stderr)
+    written = {p.name for p in work.iterdir()}
+    assert written >= {"cylinder.sphere.off", "cylinder.obj", "cylinder.png", "painted.obj", "run.json"}
+
+
+def test_console_script_is_declared():
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["scripts"]["sphere-nlp"] == "sphere_nlp.cli:main"
+    assert any(d.startswith("matplotlib") for d in project["dependencies"])
