@@ -392,3 +392,55 @@ def test_console_script_is_declared():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     assert project["scripts"]["sphere-nlp"] == "sphere_nlp.cli:main"
     assert any(d.startswith("matplotlib") for d in project["dependencies"])
+
+
+# --- README --------------------------------------------------------------------------------------------
+
+def readme_blocks():
+    """(language, text) of every fenced code block in README.md."""
+    return re.findall(r"^```(\w*)\n(.*?)^```", (ROOT / "README.md").read_text(), re.S | re.M)
+
+
+def readme_commands():
+    """Every sphere_nlp command in the README's bash blocks that runs as written (not the synopsis with
+    placeholders, not `reproduce`, which tests/test_reproduce.py runs)."""
+    commands = []
+    for language, text in readme_blocks():
+        if language != "bash":
+            continue
+        for line in text.splitlines():
+            for part in line.split("&&"):
+                part = part.strip()
+                if (part.startswith(("sphere-nlp ", "python -m sphere_nlp ")) and "INPUT" not in part
+                        and " reproduce " not in part):
+                    commands.append(part)
+    return commands
+
+
+def test_readme_commands_run(tmp_path):
+    commands = readme_commands()
+    # The set-up command's mapping and the three examples, at least.
+    assert "python -m sphere_nlp models/cylinder.off -o cylinder.sphere.off" in commands
+    assert len(commands) >= 4
+    work = with_models(tmp_path)
+    for command in commands:
+        p = subprocess.run(as_module_command(command), capture_output=True, text=True, cwd=work,
+                           env=checkout_env())
+        assert p.returncode == 0, (command, p.stderr)
+
+
+def test_readme_python_runs_and_its_numbers_are_current(tmp_path, monkeypatch):
+    blocks = [text for language, text in readme_blocks() if language == "python"]
+    assert blocks
+    monkeypatch.chdir(with_models(tmp_path))
+    namespace = {}
+    for text in blocks:
+        exec(compile(text, "README.md", "exec"), namespace)
+    assert {"cylinder_sphere.obj", "cylinder_textured.obj", "cylinder.png"} <= {p.name for p in
+                                                                                 tmp_path.iterdir()}
+    # The numbers the README quotes for the cylinder are what the code gives.
+    distortion = namespace["result"].distortion()
+    readme = (ROOT / "README.md").read_text()
+    assert "# %.2f: mean angle distortion" % distortion["mean_abs_angle_diff_deg"] in readme
+    assert ("mean angle distortion %.2f°, mean |log area ratio| %.3f"
+            % (distortion["mean_abs_angle_diff_deg"], distortion["mean_abs_log_area"])) in readme
