@@ -11,10 +11,12 @@ import numpy as np
 from . import errors
 from .certify import Certificate, certify, spherical_angles
 from .repair import prepare_mesh
+from .metrics import distortion_summary
 from .mesh_io import check_mesh_path, load_mesh, write_json, write_mesh, write_npz
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS
 from .solve import solve_angles
 from .targets import MODES, make_targets
+from .texture import spherical_uv
 from .unfold import unfold
 
 
@@ -131,20 +133,79 @@ class SphericalParameterization:
                 % (len(self.vertices), self.target, self.status, self.certificate.valid,
                    self.timings.get("total", float("nan"))))
 
-    def write(self, path):
-        """Write the sphere mesh (OFF, OBJ or PLY by extension).
-
-        Refuses (raising :class:`SolveError` or :class:`CertificateError`, writing nothing) a result
-        whose solve stopped short, e.g. at an iteration or time limit, even if its positions happen to
-        pass the certificate, and any uncertified result.
-        """
+    def _refuse_unless_certified(self):
+        """Raise (so nothing is written) unless the solve finished and the sphere is certified."""
         if not self.solved:
             raise errors.SolveError("refusing to write: "
                                     + solve_failure_message(self.status, self.iterations), self)
         if not self.certificate.valid:
             raise errors.CertificateError("refusing to write an uncertified sphere: "
                                           + self.certificate.reason, self)
-        write_mesh(path, self.vertices, self.faces)
+
+    def texture_coordinates(self):
+        """Per-corner (u, v) = (longitude / 2 pi + 0.5, latitude / pi + 0.5) of the sphere, (t, 3, 2).
+
+        See :mod:`sphere_nlp.texture` for the convention, the seam and the poles.
+        """
+        return spherical_uv(self.vertices, self.faces)
+
+    def write(self, path):
+        """Write the sphere mesh (OFF, OBJ or PLY by extension).
+
+        An OBJ also carries texture coordinates (:meth:`texture_coordinates`, ``f v/vt`` faces), so
+        an equirectangular image (a world map, an environment map) wraps onto it as onto a globe.
+
+        Refuses (raising :class:`SolveError` or :class:`CertificateError`, writing nothing) a result
+        whose solve stopped short, e.g. at an iteration or time limit, even if its positions happen to
+        pass the certificate, and any uncertified result.
+        """
+        self._refuse_unless_certified()
+        check_mesh_path(path)
+        uv = self.texture_coordinates() if Path(path).suffix.lower() == ".obj" else None
+        write_mesh(path, self.vertices, self.faces, uv)
+
+    def write_textured_input(self, path):
+        """Write the *input* mesh as OBJ with the sphere's texture coordinates.
+
+        This is the file to paint or texture: positions are the input's (the repaired vertex set, see
+        ``vertex_map``), ``vt`` are the longitude and latitude of each corner on the sphere, so an
+        equirectangular image wraps onto the model through the spherical map. Refuses uncertified
+        results like :meth:`write`.
+        """
+        self._refuse_unless_certified()
+        if Path(path).suffix.lower() != ".obj":
+            raise errors.UsageError("cannot write %s: a textured mesh must be .obj" % path)
+        write_mesh(path, self.input_vertices, self.faces, self.texture_coordinates())
+
+    def distortion(self):
+        """How far the map is from the input's angles and areas (a :mod:`~sphere_nlp.metrics` summary).
+
+        A dict with ``mean_abs_angle_diff_deg`` (mean |chord-triangle corner angle - input corner
+        angle|, degrees), ``mean_abs_log_area`` (mean |log(spherical area / input area scaled to total
+        4 pi)|), ``qc_mean``, ``qc_max``, ``area_cv``, ``min_spherical_angle_deg`` and the certificate's
+        fields. Measured against the input centred and scaled to unit size, so extreme coordinates
+        (1e-150, 1e150) give the same numbers as moderate ones.
+        """
+        return distortion_summary(_unit_size(self.input_vertices), self.vertices, self.faces)
+
+    def write_png(self, path, measure="area"):
+        """Write a PNG: the input mesh and the sphere coloured by distortion, and a checkerboarded mesh.
+
+        ``measure`` is "area" (log area ratio) or "angle" (angle distortion, degrees); see
+        :func:`sphere_nlp.picture.render_png`. Written atomically; refuses uncertified results like
+        :meth:`write`.
+        """
+        self._refuse_unless_certified()
+        if Path(path).suffix.lower() != ".png":
+            raise errors.UsageError("cannot write %s: a picture must be .png" % path)
+        from .picture import render_png           # matplotlib loads only when a picture is wanted
+
+        summary = self.distortion()
+        title = ("%s: %d vertices, mean angle distortion %.1f°, mean |log area ratio| %.3f"
+                 % (self.target, len(self.vertices), summary["mean_abs_angle_diff_deg"],
+                    summary["mean_abs_log_area"]))
+        render_png(path, _unit_size(self.input_vertices), self.vertices, self.faces, measure=measure,
+                   title=title)
 
     def save_solution(self, path):
         """Write vertices, faces, angles, excess, the targets and the vertex map to an .npz archive."""
@@ -172,6 +233,7 @@ class SphericalParameterization:
             "timings_s": {k: round(float(v), 6) for k, v in self.timings.items()},
             "peak_rss_mb": round(float(self.peak_rss_mb), 1),
             "repairs": list(self.repairs),
+            "distortion": self.distortion() if np.isfinite(self.vertices).all() else None,
             "unfold": {k: (float(v) if isinstance(v, (float, np.floating))
                            else int(v) if isinstance(v, np.integer) else v)
                        for k, v in self.unfold_info.items()},
@@ -180,6 +242,17 @@ class SphericalParameterization:
     def write_report(self, path):
         """Write :meth:`report` as JSON."""
         write_json(path, self.report())
+
+
+def _unit_size(vertices):
+    """Vertices centred on their bounding box and scaled into [-1, 1]^3.
+
+    Angles and area ratios are unchanged; extreme coordinates (1e-150, 1e150) neither overflow nor
+    underflow in the cross products of the distortion measures.
+    """
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    size = float(np.max(high - low)) / 2 or 1.0
+    return (vertices - (low + high) / 2) / size
 
 
 def _as_arrays(mesh):
@@ -202,7 +275,7 @@ def _as_arrays(mesh):
 
 def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weight=None,
                  target_angles=None, target_excess=None, formulation=DEFAULT_FORMULATION, max_iter=None,
-                 max_time=None, ipopt_options=None, progress=None, start=None, check=True):
+                 max_time=None, ipopt_options=None, progress=None, on_stage=None, start=None, check=True):
     """Map a closed genus-0 triangle mesh onto the unit sphere without overlaps.
 
     Parameters
@@ -227,6 +300,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         Extra IPOPT options.
     progress : callable(stage, iteration, objective, violation, elapsed), optional
         Called once per IPOPT iteration.
+    on_stage : callable(name), optional
+        Called as each stage begins: "load", "build", "solve", "unfold", "certify".
     start : {"auto", "conformal", "embedding", "linear"}, optional
         Starting point of the solve: a valid spherical triangulation, either the Mobius-centred
         conformal map when it is bijective or the convex embedding (``auto``, default for log-chord;
@@ -280,14 +355,18 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     clock = time.perf_counter()
     run_started = clock
 
-    def lap(name):
+    def lap(name, next_stage=None):
         nonlocal clock
         now = time.perf_counter()
         timings[name] = timings.get(name, 0.0) + now - clock
         clock = now
+        if next_stage and on_stage is not None:
+            on_stage(next_stage)
 
+    if on_stage is not None:
+        on_stage("load")
     vertices, faces = _as_arrays(mesh)
-    lap("load")
+    lap("load", "build")
     prepared = prepare_mesh(vertices, faces)
     faces, connectivity = prepared.faces, prepared.connectivity
     # Targets are angles and area ratios, so the normalised copy gives the same ones without the
@@ -295,11 +374,11 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     targets = make_targets(target, prepared.normalised_vertices, faces, connectivity.vertex_degree,
                            angle_weight=angle_weight, area_weight=area_weight,
                            target_angles=target_angles, target_excess=target_excess)
-    lap("build")
+    lap("build", "solve")
     solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
                             max_iter=max_iter, max_time=max_time, progress=progress,
                             vertices=prepared.normalised_vertices, start=start)
-    lap("solve")
+    lap("solve", "unfold")
     # Symbolic derivatives and IPOPT set-up happen inside the solve; book them as build time.
     build_s = sum(s["build_s"] for s in solution.stages)
     timings["solve"] -= build_s
@@ -311,7 +390,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     else:
         positions = np.full((connectivity.n_vertices, 3), np.nan)
         unfold_info = {}
-    lap("unfold")
+    lap("unfold", "certify")
     certificate = certify(positions, faces)
     angle_error = float(np.max(np.abs(spherical_angles(positions, faces) - solution.angles)))
     if not np.isfinite(angle_error):

@@ -12,40 +12,48 @@ from pathlib import Path
 
 from . import errors
 from .mesh_io import check_mesh_path
+from .nlp import FORMULATIONS
 from .targets import MODES
 
+# Three runnable examples (tests/test_ux.py runs each of them).
 EXAMPLES = """examples:
-  python -m sphere_nlp models/cylinder.off
-  python -m sphere_nlp bunny.off --target original-areas -o bunny_sphere.obj --report run.json
-  python -m sphere_nlp head.ply --target equal-angles --save-solution angles.npz --quiet
-  python -m sphere_nlp reproduce fig3 --out fig3/   (the paper's Fig. 3: PNG, meshes, JSON)
-  python -m sphere_nlp compare a.off b.obj --out cmp/   (sphere_nlp vs. baselines: JSON, Markdown)
+  sphere-nlp models/cylinder.off
+  sphere-nlp models/cylinder.off -o cylinder.obj --png cylinder.png
+  sphere-nlp models/cylinder.off --target equal-areas --textured-input painted.obj --report run.json
 """
 
 
 def build_parser():
     parser = argparse.ArgumentParser(
-        prog="sphere_nlp",
-        description="Map a closed genus-0 triangle mesh onto the unit sphere without overlaps "
-                    "(Sheffer, Gotsman & Dyn 2004), certified before it is written.",
+        prog="sphere-nlp",
+        description="Map a closed genus-0 triangle mesh onto the unit sphere without overlaps\n"
+                    "(Sheffer, Gotsman & Dyn 2004), certified before anything is written.\n"
+                    "`sphere-nlp reproduce fig3 --out DIR` redraws the paper's Fig. 3;\n"
+                    "`sphere-nlp compare MESH... --out DIR` compares sphere_nlp with the baselines.",
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("input", help="input mesh (OFF, OBJ, PLY, STL, anything trimesh reads)")
-    out = parser.add_argument_group("output")
-    out.add_argument("-o", "--output", help="sphere mesh to write, .off/.obj/.ply "
-                                            "(default: <input stem>.sphere.off in the current folder)")
-    out.add_argument("--report", metavar="R.json", help="write run statistics as JSON")
+    out = parser.add_argument_group("output (each written atomically, only for a certified sphere)")
+    out.add_argument("-o", "--output", metavar="OUT", help="sphere mesh, .off/.obj/.ply; .obj carries longitude/latitude "
+                                            "texture coordinates (default: <input stem>.sphere.off here)")
+    out.add_argument("--png", metavar="OUT.png",
+                     help="picture: mesh and sphere coloured by distortion, mesh checkerboarded")
+    out.add_argument("--png-measure", choices=("area", "angle"), default="area",
+                     help="colouring of the picture: log area ratio (default) or angle distortion")
+    out.add_argument("--textured-input", metavar="OUT.obj",
+                     help="the input mesh with the sphere's texture coordinates, to paint or texture")
+    out.add_argument("--report", metavar="R.json", help="run statistics as JSON (also on failure)")
     out.add_argument("--save-solution", metavar="S.npz",
-                     help="write vertices, faces, angles, excess and targets as .npz")
+                     help="vertices, faces, angles, excess and targets as .npz")
     method = parser.add_argument_group("method")
-    method.add_argument("--target", default="original-angles", choices=MODES,
-                        help="what the map aims for (default: original-angles)")
-    method.add_argument("--angle-weight", type=float, help="weight of the angle term (mode default)")
-    method.add_argument("--area-weight", type=float, help="weight of the area term (mode default)")
-    method.add_argument("--formulation", default="log-chord", choices=("log-chord", "substituted", "faithful"),
-                        help="NLP formulation (default: log-chord; faithful = the paper verbatim)")
-    limits = parser.add_argument_group("solver limits")
-    limits.add_argument("--max-iter", type=int, help="IPOPT iteration limit per stage")
-    limits.add_argument("--max-time", type=float, help="wall-clock limit per IPOPT stage, seconds")
+    method.add_argument("--target", default="original-angles", choices=MODES, metavar="MODE",
+                        help="what the map aims for: %s (default: original-angles)" % ", ".join(MODES))
+    method.add_argument("--angle-weight", type=float, metavar="W", help="weight of the angle term")
+    method.add_argument("--area-weight", type=float, metavar="W", help="weight of the area term")
+    method.add_argument("--formulation", default="log-chord", choices=FORMULATIONS, metavar="F",
+                        help="log-chord (default), substituted or faithful (the paper verbatim)")
+    limits = parser.add_argument_group("solver limits (reaching one is a failure)")
+    limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit per stage")
+    limits.add_argument("--max-time", type=float, metavar="S", help="wall-clock limit per IPOPT stage, seconds")
     misc = parser.add_argument_group("messages")
     misc.add_argument("-q", "--quiet", action="store_true", help="print only errors")
     misc.add_argument("--debug", action="store_true", help="show tracebacks")
@@ -53,52 +61,95 @@ def build_parser():
 
 
 class Progress:
-    """Progress lines on stderr: one updating line on a terminal, a line every few seconds otherwise."""
+    """Progress on stderr: one updating line on a terminal, plain lines otherwise; nothing when quiet.
+
+    The updating line shows the stage (load, build, solve, unfold, certify, write), and while solving
+    IPOPT's iteration, objective and constraint violation; all with the elapsed time. Any other
+    message first ends that line with a newline, so nothing is written over it.
+    """
 
     def __init__(self, quiet=False, stream=None):
         self.stream = stream or sys.stderr
         self.quiet = quiet
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-        self.last = 0.0
+        self.last = 0.0                 # when the progress state was last shown
         self.start = time.perf_counter()
+        self.pending = False            # an unfinished updating line is on the terminal
+
+    def elapsed(self):
+        return time.perf_counter() - self.start
+
+    def finish_line(self):
+        """End the updating line (if any) so the next message starts on a line of its own."""
+        if self.pending:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.pending = False
 
     def say(self, text):
         if self.quiet:
             return
-        if self.tty:
-            self.stream.write("\r\033[K")
+        self.finish_line()
         self.stream.write(text + "\n")
         self.stream.flush()
+        self.last = time.perf_counter()
 
-    def iteration(self, stage, iteration, objective, violation, elapsed):
-        if self.quiet:
-            return
+    def _update(self, text, always=False):
+        """Show a progress state: rewrite the terminal line, or log a line every few seconds."""
         now = time.perf_counter()
+        # A terminal line can change often; a log file gets a line every few seconds.
         interval = 0.2 if self.tty else 5.0
-        if now - self.last < interval and iteration > 0:
+        if now - self.last < interval and not always:
             return
         self.last = now
-        text = ("solve (%s): iteration %d, objective %.6g, constraint violation %.2e, %.1f s"
-                % (stage, iteration, objective, violation, now - self.start))
         if self.tty:
             self.stream.write("\r\033[K" + text)
             self.stream.flush()
+            self.pending = True
         else:
             self.say(text)
 
+    def stage(self, name):
+        if not self.quiet:
+            # Stages are always shown on a terminal; in a log only when they start after a pause.
+            self._update("%s, %.1f s" % (name, self.elapsed()), always=self.tty)
 
-def run(args):
+    def iteration(self, stage, iteration, objective, violation, elapsed):
+        if not self.quiet:
+            self._update("solve (%s): iteration %d, objective %.6g, constraint violation %.2e, %.1f s"
+                         % (stage, iteration, objective, violation, self.elapsed()),
+                         always=self.tty and iteration == 0)
+
+
+def summary_line(output, result):
+    """The run in one line: vertices, mode, time, certificate and mean distortion."""
+    c = result.certificate
+    d = result.distortion()
+    return ("wrote %s: %d vertices, %s, %.2f s, certified (degree %.12g, 0 flipped), mean angle "
+            "distortion %.2f°, mean |log area ratio| %.3f"
+            % (output, len(result.vertices), result.target, result.timings["total"], c.degree,
+               d["mean_abs_angle_diff_deg"], d["mean_abs_log_area"]))
+
+
+def _check_suffix(path, suffix, what):
+    if path and Path(path).suffix.lower() != suffix:
+        raise errors.UsageError("cannot write %s: %s must end in %s" % (path, what, suffix))
+
+
+def run(args, progress):
     from .api import parameterize, solve_failure_message
 
     input_path = Path(args.input)
     output = Path(args.output) if args.output else Path(input_path.name.split(".")[0] + ".sphere.off")
+    # Every output name is checked before the (possibly long) solve.
     check_mesh_path(output)
-    progress = Progress(quiet=args.quiet)
+    _check_suffix(args.png, ".png", "a picture")
+    _check_suffix(args.textured_input, ".obj", "a textured mesh")
     progress.say("sphere_nlp: mapping %s (target %s)" % (input_path, args.target))
     result = parameterize(str(input_path), target=args.target, angle_weight=args.angle_weight,
                           area_weight=args.area_weight, formulation=args.formulation,
                           max_iter=args.max_iter, max_time=args.max_time, progress=progress.iteration,
-                          check=False)
+                          on_stage=progress.stage, check=False)
     for repair in result.repairs:
         progress.say("repaired: " + repair)
     if args.report:
@@ -109,15 +160,16 @@ def run(args):
                                     + "; nothing written")
         raise errors.CertificateError("the sphere failed its certificate (%s; IPOPT status %s); nothing "
                                       "written" % (result.certificate.reason, result.status))
+    progress.stage("write")
     result.write(output)
+    if args.textured_input:
+        result.write_textured_input(args.textured_input)
     if args.save_solution:
         result.save_solution(args.save_solution)
-    c = result.certificate
-    progress.say("wrote %s: %d vertices, %s, %d iterations, %.2f s, certified (degree %.12g, 0 flipped, "
-                 "norm error %.1e, constraint violation %.1e, angle error %.1e rad)"
-                 % (output, len(result.vertices), result.target, result.iterations,
-                    result.timings["total"], c.degree, c.max_norm_error, result.max_constraint_violation,
-                    result.max_angle_error))
+    if args.png:
+        progress.stage("write (picture)")
+        result.write_png(args.png, measure=args.png_measure)
+    progress.say(summary_line(output, result))
     return 0
 
 
@@ -136,8 +188,12 @@ def main(argv=None):
         args = parser.parse_args(argv)
     except SystemExit as exit_:
         return int(exit_.code or 0)
+    progress = Progress(quiet=args.quiet)
     try:
-        return run(args)
+        try:
+            return run(args, progress)
+        finally:
+            progress.finish_line()      # an error message gets a line of its own
     except errors.SphereNLPError as exc:
         if args.debug:
             traceback.print_exc()

@@ -298,16 +298,43 @@ def check_mesh_path(path):
         raise errors.UsageError("cannot write %s: output must end in %s" % (path, ", ".join(MESH_FORMATS)))
 
 
-def write_mesh(path, vertices, faces):
+def write_mesh(path, vertices, faces, corner_uv=None):
     """Write a triangle mesh as OFF, OBJ or PLY (ASCII), chosen by the extension.
 
     Coordinates are written with 17 significant digits, so they read back bit for bit and the
     certificate computed before writing holds for the file.
+
+    Parameters
+    ----------
+    path : str or Path
+    vertices : (n, 3) float array
+    faces : (t, 3) int array
+    corner_uv : (t, 3, 2) float array, optional
+        Texture coordinates per corner (e.g. :func:`sphere_nlp.texture.spherical_uv`), OBJ only:
+        written as ``vt`` lines (one per distinct (u, v)) and ``f v/vt`` faces.
+
+    Examples
+    --------
+    >>> import tempfile, os
+    >>> from sphere_nlp.shapes import octahedron
+    >>> from sphere_nlp.texture import spherical_uv
+    >>> V, F = octahedron()
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     write_mesh(os.path.join(d, "o.obj"), V, F, spherical_uv(V, F))
+    ...     lines = open(os.path.join(d, "o.obj")).read().splitlines()
+    >>> sum(line.startswith("vt ") for line in lines), [line for line in lines if line[0] == "f"][:2]
+    (13, ['f 1/1 3/2 5/3', 'f 3/2 2/4 5/5'])
     """
     check_mesh_path(path)
     suffix = Path(path).suffix.lower()
     vertices = np.asarray(vertices, float)
     faces = np.asarray(faces, np.int64)
+    if corner_uv is not None:
+        if suffix != ".obj":
+            raise errors.UsageError("cannot write texture coordinates to %s: only OBJ carries them" % path)
+        corner_uv = np.asarray(corner_uv, float)
+        if corner_uv.shape != faces.shape + (2,):
+            raise ValueError("corner_uv must have shape (t, 3, 2), got %s" % (corner_uv.shape,))
     vertex_lines = "\n".join("%.17g %.17g %.17g" % tuple(v) for v in vertices)
     with atomic_output(path) as out:
         if suffix == ".off":
@@ -317,7 +344,10 @@ def write_mesh(path, vertices, faces):
         elif suffix == ".obj":
             out.write("# written by sphere_nlp\n")
             out.write("".join("v " + line + "\n" for line in vertex_lines.split("\n")))
-            out.write("\n".join("f %d %d %d" % tuple(f + 1) for f in faces) + "\n")
+            if corner_uv is None:
+                out.write("\n".join("f %d %d %d" % tuple(f + 1) for f in faces) + "\n")
+            else:
+                _write_obj_uv(out, faces, corner_uv)
         else:
             out.write("ply\nformat ascii 1.0\ncomment written by sphere_nlp\n"
                       "element vertex %d\nproperty double x\nproperty double y\nproperty double z\n"
@@ -325,6 +355,23 @@ def write_mesh(path, vertices, faces):
                       % (len(vertices), len(faces)))
             out.write(vertex_lines + "\n")
             out.write("\n".join("3 %d %d %d" % tuple(f) for f in faces) + "\n")
+
+
+def _write_obj_uv(out, faces, corner_uv):
+    """``vt`` lines and ``f v/vt`` faces; corners with the same (u, v) share one ``vt``."""
+    # Exact duplicates (a vertex's corners away from the seam and the poles) collapse into one vt;
+    # 9 significant digits are far finer than any texture's texels.
+    flat = corner_uv.reshape(-1, 2)
+    unique_uv, first, vt_index = np.unique(flat, axis=0, return_index=True, return_inverse=True)
+    # Number the vt lines in order of first use, so a file reads in face order.
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    unique_uv = unique_uv[order]
+    vt_index = rank[vt_index.reshape(-1)].reshape(-1, 3)
+    out.write("".join("vt %.9g %.9g\n" % tuple(uv) for uv in unique_uv))
+    corners = np.stack([faces + 1, vt_index + 1], axis=-1).reshape(len(faces), 6)
+    out.write("".join("f %d/%d %d/%d %d/%d\n" % tuple(row) for row in corners))
 
 
 def write_json(path, data):

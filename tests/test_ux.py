@@ -1,0 +1,446 @@
+"""The user-facing parts: texture coordinates and textured OBJ, pictures, progress and summary, README."""
+
+import dataclasses
+import io
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import sphere_nlp
+from sphere_nlp.cli import EXAMPLES, Progress, main
+from sphere_nlp.shapes import cylinder, icosphere, octahedron
+from sphere_nlp.texture import checker, pole_triangles, spherical_uv, uv_signed_areas
+
+from conftest import MODELS
+
+
+@pytest.fixture(scope="module")
+def cylinder_result():
+    """The shipped cylinder mapped with the default target (a fraction of a second)."""
+    return sphere_nlp.parameterize(str(MODELS / "cylinder.off"))
+
+
+def random_rotation(rng):
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def read_textured_obj(path):
+    """Positions, uv list, and per face the (v, vt) index pairs (0-based) of an OBJ with ``f v/vt``."""
+    positions, uvs, faces = [], [], []
+    for line in path.read_text().splitlines():
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "v":
+            positions.append([float(w) for w in words[1:4]])
+        elif words[0] == "vt":
+            uvs.append([float(w) for w in words[1:3]])
+        elif words[0] == "f":
+            faces.append([[int(i) - 1 for i in corner.split("/")] for corner in words[1:]])
+    return np.array(positions), np.array(uvs), np.array(faces)
+
+
+# --- texture coordinates -----------------------------------------------------------------------------
+
+def check_uv_layout(corner_uv, faces):
+    """Every uv triangle counter-clockwise (none mirrored or wrapped around the seam), v in [0, 1]."""
+    assert corner_uv.shape == (len(faces), 3, 2)
+    areas = uv_signed_areas(corner_uv)
+    assert (areas > 0).all(), "uv triangle %d is flipped or wraps around the seam" % np.argmin(areas)
+    assert corner_uv[..., 1].min() >= 0 and corner_uv[..., 1].max() <= 1
+    assert corner_uv[..., 0].min() >= 0 and corner_uv[..., 0].max() < 2
+    return areas
+
+
+def test_uv_tiles_the_texture_once_under_any_rotation(cylinder_result):
+    rng = np.random.default_rng(0)
+    V, F = icosphere(3)
+    for _ in range(20):
+        areas = check_uv_layout(spherical_uv(V @ random_rotation(rng).T, F), F)
+        # The uv triangles cover the unit square once: a seam-wrapping triangle alone would add about
+        # its height times 1, a mirrored one would cancel area. (Straight uv edges of curved images
+        # lose a few per cent near the poles.)
+        assert 0.9 < areas.sum() < 1.02
+    X, F = cylinder_result.vertices, cylinder_result.faces
+    for _ in range(20):
+        areas = check_uv_layout(spherical_uv(X @ random_rotation(rng).T, F), F)
+        assert 0.6 < areas.sum() < 1.02          # coarser: 168 triangles, some large near the poles
+
+
+def test_uv_is_longitude_and_latitude_away_from_seam_and_poles():
+    V, F = icosphere(2)
+    uv = spherical_uv(V, F)
+    lon = np.arctan2(V[F, 1], V[F, 0])
+    lat = np.arcsin(np.clip(V[F, 2], -1, 1))
+    np.testing.assert_allclose(uv[..., 1], lat / np.pi + 0.5, atol=1e-12)
+    plain = (np.ptp(uv[..., 0], axis=1) < 0.4) & (np.abs(lat) < 1.2).all(axis=1)
+    assert plain.sum() > len(F) // 2
+    np.testing.assert_allclose(np.mod(uv[plain, :, 0], 1), np.mod(lon[plain] / (2 * np.pi) + 0.5, 1),
+                               atol=1e-12)
+
+
+def test_seam_triangles_are_shifted_and_pole_corners_take_the_mean():
+    V, F = octahedron()        # poles at vertices 4 (north) and 5 (south); vertex 1 is on the seam
+    uv = spherical_uv(V, F)
+    for i, face in enumerate(F):
+        for j, vertex in enumerate(face):
+            if vertex in (4, 5):
+                others = [k for k in range(3) if k != j]
+                assert uv[i, j, 0] == pytest.approx(uv[i, others, 0].mean())
+                assert uv[i, j, 1] == (1.0 if vertex == 4 else 0.0)
+    # The same vertex gets different u in different triangles only at the seam (u and u + 1) and at
+    # the poles.
+    for vertex in range(4):
+        us = uv[..., 0][F == vertex]
+        assert set(np.round(np.mod(us, 1), 12)) == {round(np.mod(us[0], 1), 12)}
+    check_uv_layout(uv, F)
+
+
+def test_pole_inside_a_triangle_still_gives_a_counter_clockwise_uv_triangle():
+    V, F = icosphere(1)
+    # Turn the sphere so the north pole is the centre of face 0.
+    centre = V[F[0]].mean(axis=0)
+    centre /= np.linalg.norm(centre)
+    axis = np.cross(centre, [0, 0, 1.0])
+    angle = np.arccos(centre[2])
+    axis /= np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    R = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    X = V @ R.T
+    assert 0 in pole_triangles(X, F)
+    check_uv_layout(spherical_uv(X, F), F)
+
+
+def test_checker_repeats_with_the_texture():
+    uv = np.random.default_rng(1).random((100, 2))
+    np.testing.assert_array_equal(checker(uv), checker(uv + [1, 0]))
+    assert set(checker(uv)) == {0, 1}
+
+
+# --- OBJ with texture coordinates ----------------------------------------------------------------------
+
+def test_obj_output_carries_seam_safe_texture_coordinates(cylinder_result, tmp_path):
+    out = tmp_path / "cyl.obj"
+    cylinder_result.write(out)
+    positions, uvs, corners = read_textured_obj(out)
+    X, F = cylinder_result.vertices, cylinder_result.faces
+    np.testing.assert_array_equal(positions, X)                  # positions are the sphere, bit for bit
+    np.testing.assert_array_equal(corners[..., 0], F)            # faces and vertex order unchanged
+    assert len(X) <= len(uvs) < 3 * len(F)                       # shared where they agree
+    corner_uv = uvs[corners[..., 1]]
+    np.testing.assert_allclose(corner_uv, cylinder_result.texture_coordinates(), atol=1e-8)
+    check_uv_layout(corner_uv, F)
+    # Our own reader and trimesh both read it back.
+    V2, F2 = sphere_nlp.load_mesh(out)
+    np.testing.assert_array_equal(F2, F)
+    import trimesh
+
+    loaded = trimesh.load(str(out), process=False)
+    assert loaded.visual.uv is not None and len(loaded.faces) == len(F)
+
+
+def test_textured_input_has_input_positions_and_sphere_uv(cylinder_result, tmp_path):
+    out = tmp_path / "cyl_textured.obj"
+    cylinder_result.write_textured_input(out)
+    positions, uvs, corners = read_textured_obj(out)
+    V, _ = cylinder()
+    np.testing.assert_allclose(positions, V, atol=1e-15)
+    np.testing.assert_allclose(uvs[corners[..., 1]], cylinder_result.texture_coordinates(), atol=1e-8)
+    with pytest.raises(sphere_nlp.UsageError):
+        cylinder_result.write_textured_input(tmp_path / "cyl.ply")
+    assert not (tmp_path / "cyl.ply").exists()
+
+
+def test_ply_and_off_keep_sphere_positions_without_uv(cylinder_result, tmp_path):
+    for name in ("s.ply", "s.off"):
+        cylinder_result.write(tmp_path / name)
+        X, F = sphere_nlp.load_mesh(tmp_path / name)
+        np.testing.assert_array_equal(X, cylinder_result.vertices)
+    with pytest.raises(sphere_nlp.UsageError):
+        sphere_nlp.write_mesh(tmp_path / "t.ply", *octahedron(), spherical_uv(*octahedron()))
+
+
+def test_uncertified_results_write_nothing(cylinder_result, tmp_path):
+    bad = dataclasses.replace(cylinder_result, certificate=dataclasses.replace(
+        cylinder_result.certificate, valid=False, reason="1 flipped or degenerate triangle(s)"))
+    for write, name in ((bad.write, "s.obj"), (bad.write_textured_input, "t.obj")):
+        with pytest.raises(sphere_nlp.CertificateError, match="refusing"):
+            write(tmp_path / name)
+    assert list(tmp_path.iterdir()) == []
+
+
+# --- picture -------------------------------------------------------------------------------------------
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_colours(path):
+    """The distinct RGB colours of a PNG (read back with matplotlib's own PNG reader)."""
+    import matplotlib.image
+
+    pixels = matplotlib.image.imread(str(path))
+    return np.unique((pixels[..., :3] * 255).round().astype(np.uint8).reshape(-1, 3), axis=0)
+
+
+@pytest.mark.parametrize("measure", ["area", "angle"])
+def test_png_is_a_real_picture(cylinder_result, tmp_path, measure):
+    out = tmp_path / "map.png"
+    cylinder_result.write_png(out, measure=measure)
+    data = out.read_bytes()
+    assert data[:8] == PNG_SIGNATURE and len(data) > 50_000
+    colours = png_colours(out)
+    assert len(colours) > 500                   # shading, a colour scale and a checkerboard, not a blank
+    # The checkerboard's red is there, and the colour scale's ends (blue and red for the area measure).
+    assert ((colours[:, 0] > 150) & (colours[:, 1] < 90) & (colours[:, 2] < 70)).any()
+    if measure == "area":
+        assert ((colours[:, 2] > 100) & (colours[:, 0] < 60)).any()
+    assert [p.name for p in tmp_path.iterdir()] == ["map.png"]        # no temporary file left
+
+
+def test_png_colour_limits_follow_the_distortion(cylinder_result, tmp_path):
+    from sphere_nlp.metrics import area_log_ratio
+    from sphere_nlp.picture import render_png
+
+    V, F = cylinder()
+    info = render_png(tmp_path / "a.png", V, cylinder_result.vertices, F)
+    log_area = area_log_ratio(V, cylinder_result.vertices, F)
+    low, high = info["colour_limits"]
+    assert low == -high and np.percentile(np.abs(log_area), 90) <= high <= np.abs(log_area).max()
+    assert info["drawn_triangles"][1] < len(F)               # the back of the sphere is culled
+    assert info["checker_levels"] == 3                        # small meshes get a fine checkerboard
+
+
+def test_png_refused_for_uncertified_results_and_bad_names(cylinder_result, tmp_path):
+    bad = dataclasses.replace(cylinder_result, certificate=dataclasses.replace(
+        cylinder_result.certificate, valid=False, reason="degree 0 instead of 1"))
+    with pytest.raises(sphere_nlp.CertificateError, match="refusing"):
+        bad.write_png(tmp_path / "x.png")
+    with pytest.raises(sphere_nlp.UsageError):
+        cylinder_result.write_png(tmp_path / "x.jpg")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_png_of_a_large_mesh_is_fast(tmp_path):
+    import time
+
+    from sphere_nlp.picture import render_png
+
+    V, F = icosphere(6)                                       # 81,920 triangles
+    X = V @ random_rotation(np.random.default_rng(2)).T
+    started = time.perf_counter()
+    render_png(tmp_path / "big.png", V * [1, 1, 0.5], X, F)
+    assert time.perf_counter() - started < 30
+
+
+# --- command line: progress, summary, examples, install ------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_cli(capsys, *args):
+    status = main([str(a) for a in args])
+    return status, capsys.readouterr().err
+
+
+def as_module_command(command):
+    """A README or --help command line as an argv for this interpreter (sphere-nlp = python -m sphere_nlp)."""
+    words = shlex.split(command)
+    if words[0] == "sphere-nlp":
+        words = words[1:]
+    else:
+        assert words[:3] == ["python", "-m", "sphere_nlp"], command
+        words = words[3:]
+    return [sys.executable, "-m", "sphere_nlp", *words]
+
+
+def checkout_env():
+    """Environment for a subprocess that imports this checkout's sphere_nlp, from any folder."""
+    import os
+
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep)
+                                                       if p])
+    return env
+
+
+def with_models(directory):
+    """A working folder holding the shipped models, as the examples expect (run from the checkout)."""
+    (directory / "models").symlink_to(ROOT / "models")
+    return directory
+
+
+def test_quiet_prints_nothing_on_success(tmp_path, capsys):
+    status, stderr = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.obj", "--png",
+                             tmp_path / "s.png", "--textured-input", tmp_path / "t.obj", "--quiet")
+    assert status == 0 and stderr == "" and capsys.readouterr().out == ""
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.obj", "s.png", "t.obj"]
+
+
+def test_summary_line_states_size_mode_time_certificate_and_distortion(tmp_path, capsys):
+    from sphere_nlp.metrics import distortion_summary
+
+    out = tmp_path / "s.off"
+    status, stderr = run_cli(capsys, MODELS / "cylinder.off", "-o", out, "--target", "original-areas")
+    assert status == 0
+    last = stderr.strip().splitlines()[-1]
+    match = re.fullmatch(r"wrote (.+): (\d+) vertices, original-areas, ([\d.]+) s, certified \(degree 1, "
+                         r"0 flipped\), mean angle distortion ([\d.]+)°, mean \|log area ratio\| ([\d.]+)", last)
+    assert match, last
+    assert match[1] == str(out) and int(match[2]) == 86 and 0 < float(match[3]) < 60
+    # The numbers are those of the written sphere against the input.
+    V, F = sphere_nlp.load_mesh(MODELS / "cylinder.off")
+    X, _ = sphere_nlp.load_mesh(out)
+    expected = distortion_summary(V, X, F)
+    assert float(match[4]) == pytest.approx(expected["mean_abs_angle_diff_deg"], abs=0.006)
+    assert float(match[5]) == pytest.approx(expected["mean_abs_log_area"], abs=0.0006)
+
+
+def test_failed_run_writes_no_picture_and_no_meshes(tmp_path, capsys):
+    import meshgen
+
+    source = tmp_path / "ellipsoid.off"
+    sphere_nlp.write_mesh(source, *meshgen.ellipsoid(2))
+    status, stderr = run_cli(capsys, source, "-o", tmp_path / "s.obj", "--png", tmp_path / "s.png",
+                             "--textured-input", tmp_path / "t.obj", "--max-iter", "1")
+    assert status == 1 and "nothing written" in stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["ellipsoid.off"]
+
+
+def test_bad_picture_or_texture_name_is_a_usage_error_before_solving(tmp_path, capsys):
+    for option, name in (("--png", "s.jpg"), ("--textured-input", "t.ply")):
+        status, stderr = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.off", option,
+                                 tmp_path / name)
+        assert status == 2 and "must end in" in stderr and "mapping" not in stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+class FakeTerminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_terminal_progress_is_one_line_finished_before_other_messages():
+    stream = FakeTerminal()
+    progress = Progress(stream=stream)
+    for stage in ("load", "build", "solve"):
+        progress.stage(stage)
+    progress.iteration("equality", 0, 12.5, 1e-3, 0.1)
+    progress.stage("unfold")
+    progress.say("repaired: 2 vertices merged")
+    text = stream.getvalue()
+    updates = text.split("\r\033[K")[1:]
+    assert [u.split(",")[0] for u in updates] == ["load", "build", "solve", "solve (equality): iteration 0",
+                                                  "unfold"]
+    assert "objective 12.5, constraint violation 1.00e-03" in updates[3]
+    # Only the last update is followed by a newline, right before the message.
+    assert text.count("\n") == 2 and text.endswith("unfold, 0.0 s\nrepaired: 2 vertices merged\n")
+    progress.finish_line()
+    assert stream.getvalue() == text                          # nothing pending: nothing added
+
+
+def test_log_progress_is_plain_periodic_lines():
+    stream = io.StringIO()
+    progress = Progress(stream=stream)
+    progress.say("sphere_nlp: mapping x.off")
+    for i in range(100):                                      # a fast solve: no line per iteration
+        progress.iteration("equality", i, 1.0, 0.0, 0.0)
+    progress.stage("unfold")
+    assert stream.getvalue() == "sphere_nlp: mapping x.off\n"
+    progress.last -= 10                                       # ... ten seconds later
+    progress.stage("certify")
+    assert stream.getvalue().splitlines()[-1].startswith("certify, ")
+    assert "\r" not in stream.getvalue() and "\033" not in stream.getvalue()
+
+
+def test_quiet_progress_writes_nothing():
+    stream = FakeTerminal()
+    progress = Progress(quiet=True, stream=stream)
+    progress.stage("load")
+    progress.iteration("equality", 0, 1.0, 0.0, 0.0)
+    progress.say("x")
+    progress.finish_line()
+    assert stream.getvalue() == ""
+
+
+def test_help_is_grouped_and_ends_with_three_runnable_examples(tmp_path):
+    help_text = subprocess.run([sys.executable, "-m", "sphere_nlp", "--help"], capture_output=True,
+                               text=True, env=checkout_env()).stdout
+    for group in ("output", "method", "solver limits", "messages"):
+        assert "\n%s" % group in help_text
+    assert help_text.rstrip().endswith(EXAMPLES.rstrip())
+    examples = [line.strip() for line in EXAMPLES.splitlines()[1:] if line.strip()]
+    assert len(examples) == 3
+    work = with_models(tmp_path)
+    for command in examples:
+        p = subprocess.run(as_module_command(command), capture_output=True, text=True, cwd=work,
+                           env=checkout_env())
+        assert p.returncode == 0, (command, p.stderr)
+    written = {p.name for p in work.iterdir()}
+    assert written >= {"cylinder.sphere.off", "cylinder.obj", "cylinder.png", "painted.obj", "run.json"}
+
+
+def test_console_script_is_declared():
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["scripts"]["sphere-nlp"] == "sphere_nlp.cli:main"
+    assert any(d.startswith("matplotlib") for d in project["dependencies"])
+
+
+# --- README --------------------------------------------------------------------------------------------
+
+def readme_blocks():
+    """(language, text) of every fenced code block in README.md."""
+    return re.findall(r"^```(\w*)\n(.*?)^```", (ROOT / "README.md").read_text(), re.S | re.M)
+
+
+def readme_commands():
+    """Every sphere_nlp command in the README's bash blocks that runs as written (not the synopsis with
+    placeholders, not `reproduce`, which tests/test_reproduce.py runs)."""
+    commands = []
+    for language, text in readme_blocks():
+        if language != "bash":
+            continue
+        for line in text.splitlines():
+            for part in line.split("&&"):
+                part = part.strip()
+                if (part.startswith(("sphere-nlp ", "python -m sphere_nlp ")) and "INPUT" not in part
+                        and " reproduce " not in part):
+                    commands.append(part)
+    return commands
+
+
+def test_readme_commands_run(tmp_path):
+    commands = readme_commands()
+    # The set-up command's mapping and the three examples, at least.
+    assert "python -m sphere_nlp models/cylinder.off -o cylinder.sphere.off" in commands
+    assert len(commands) >= 4
+    work = with_models(tmp_path)
+    for command in commands:
+        p = subprocess.run(as_module_command(command), capture_output=True, text=True, cwd=work,
+                           env=checkout_env())
+        assert p.returncode == 0, (command, p.stderr)
+
+
+def test_readme_python_runs_and_its_numbers_are_current(tmp_path, monkeypatch):
+    blocks = [text for language, text in readme_blocks() if language == "python"]
+    assert blocks
+    monkeypatch.chdir(with_models(tmp_path))
+    namespace = {}
+    for text in blocks:
+        exec(compile(text, "README.md", "exec"), namespace)
+    assert {"cylinder_sphere.obj", "cylinder_textured.obj", "cylinder.png"} <= {p.name for p in
+                                                                                 tmp_path.iterdir()}
+    # The numbers the README quotes for the cylinder are what the code gives.
+    distortion = namespace["result"].distortion()
+    readme = (ROOT / "README.md").read_text()
+    assert "# %.2f: mean angle distortion" % distortion["mean_abs_angle_diff_deg"] in readme
+    assert ("mean angle distortion %.2f°, mean |log area ratio| %.3f"
+            % (distortion["mean_abs_angle_diff_deg"], distortion["mean_abs_log_area"])) in readme
