@@ -357,7 +357,7 @@ class AngleNLP:
         return float(f), np.asarray(g).ravel()
 
     # -- solving ---------------------------------------------------------------------------------
-    def _bounds(self, inequalities):
+    def _bounds(self, inequalities, excess_bounds=None):
         lbx = np.full(self.n_variables, -np.inf)
         if inequalities and self.formulation == "log-chord":
             # u > 0 holds anyway; the bound keeps every u = alpha - e/2 at least a margin from 0,
@@ -366,6 +366,8 @@ class AngleNLP:
         elif inequalities:
             lbx[:] = 0.0          # (3) alpha > 0 and, for the faithful form, (4) e > 0
         ubx = np.full(self.n_variables, np.inf)
+        if excess_bounds is not None:
+            lbx[3 * self.n_faces:], ubx[3 * self.n_faces:] = excess_bounds
         lbg = np.zeros(self.n_equalities + (self.n_inequalities if inequalities else 0))
         ubg = np.zeros_like(lbg)
         if inequalities:
@@ -388,7 +390,8 @@ class AngleNLP:
             self._solvers[key] = (solver, callback)
         return self._solvers[key]
 
-    def solve(self, x0, inequalities=False, lam_g0=None, lam_x0=None, options=None, progress=None):
+    def solve(self, x0, inequalities=False, lam_g0=None, lam_x0=None, options=None, progress=None,
+              excess_bounds=None):
         """Run IPOPT from x0.
 
         Parameters
@@ -401,6 +404,9 @@ class AngleNLP:
         options : dict
             IPOPT options (without the "ipopt." prefix).
         progress : callable(iteration, objective, violation, elapsed), optional
+        excess_bounds : (lower, upper) arrays of length t, optional
+            log-chord only: bounds on the log excesses (a trust region; see
+            :func:`sphere_nlp.solve.solve_angles`).
 
         Returns
         -------
@@ -411,7 +417,7 @@ class AngleNLP:
         build_s = time.perf_counter() - start
         if callback is not None:
             callback.iteration, callback.start = 0, time.perf_counter()
-        lbx, ubx, lbg, ubg = self._bounds(inequalities)
+        lbx, ubx, lbg, ubg = self._bounds(inequalities, excess_bounds)
         args = dict(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
         if lam_g0 is not None:
             lam = np.zeros(len(lbg))

@@ -51,6 +51,11 @@ WARM_START_OPTIONS = {
 }
 
 
+# Trust region of the log-chord solve: each IPOPT run keeps every log e within this of where it
+# started (a factor e^2.5 ~ 12 in area), re-centred up to MAX_WINDOW_ROUNDS times if it ends on it.
+EXCESS_WINDOW = 2.5
+MAX_WINDOW_ROUNDS = 6
+
 # A solve counts only if every equality constraint (6)-(8) holds to this, whatever IPOPT reports.
 FEASIBILITY_TOLERANCE = 1e-8
 
@@ -297,10 +302,30 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     if formulation == "log-chord":
         dropped = independent_vertices(start_positions) if start != "linear" else []
         nlp = AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped)
+        t = connectivity.n_faces
         x0 = nlp.pack(init_angles, init_excess)
-        run = nlp.solve(x0, options=options, progress=stage_progress("equality"))
-        stages.append(_stage_record("equality", run))
-        u_min = np.min(run["x"][:3 * connectivity.n_faces])
+
+        def windowed_solve(x_start, name, inequalities=False):
+            # Bounds log e within EXCESS_WINDOW of the current point act as a trust region: when most
+            # triangles are tiny, scaling all their excesses together barely changes (6)-(8) and, in
+            # the angle modes, not the objective either, so IPOPT took huge steps along that flat
+            # direction (armadillo.obj, 43k vertices: diverged; with the window 17 iterations). The
+            # barrier terms also convexify it. If the result touches the window, re-centre and repeat.
+            x = x_start
+            for round_ in range(MAX_WINDOW_ROUNDS):
+                log_e = x[3 * t:]
+                run = nlp.solve(x, inequalities=inequalities, options=options,
+                                progress=stage_progress(name),
+                                excess_bounds=(log_e - EXCESS_WINDOW, log_e + EXCESS_WINDOW))
+                stages.append(_stage_record(name if round_ == 0 else "%s-recentred" % name, run))
+                moved = np.max(np.abs(run["x"][3 * t:] - log_e), initial=0.0)
+                if not run["success"] or not np.isfinite(run["x"]).all() or moved < 0.99 * EXCESS_WINDOW:
+                    return run
+                x = run["x"]
+            return run
+
+        run = windowed_solve(x0, "equality")
+        u_min = np.min(run["x"][:3 * t])
         if not run["success"] or not u_min > np.log(nlp.angle_margin):
             # As the paper adds its inequalities only when needed: the optimum lies at (or the
             # solver ran into) a degenerate triangle, so solve again with u >= angle_margin, from
@@ -308,18 +333,14 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             lower = np.log(nlp.angle_margin)
             restart = run["x"] if np.isfinite(run["x"]).all() else x0
             restart = restart.copy()
-            restart[:3 * connectivity.n_faces] = np.maximum(restart[:3 * connectivity.n_faces],
-                                                            lower + 1e-3)
-            run = nlp.solve(restart, inequalities=True, options=options,
-                            progress=stage_progress("margin"))
-            stages.append(_stage_record("margin", run))
+            restart[:3 * t] = np.maximum(restart[:3 * t], lower + 1e-3)
+            run = windowed_solve(restart, "margin", inequalities=True)
         if max_constraint_violation(connectivity, *nlp.unpack(run["x"])) > FEASIBILITY_TOLERANCE:
             # The three left-out vertex sums come back by themselves only near the solution set
             # (the redundancy is infinitesimal); elephant.obj converged to a metric with three cone
             # points at exactly those vertices. Solve again with every constraint.
             nlp = AngleNLP(connectivity, targets, formulation)
-            run = nlp.solve(x0, options=options, progress=stage_progress("all-constraints"))
-            stages.append(_stage_record("all-constraints", run))
+            run = windowed_solve(x0, "all-constraints")
         angles, excess = nlp.unpack(run["x"])
         return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess, start_kind)
 
