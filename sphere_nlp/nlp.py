@@ -136,7 +136,7 @@ class AngleNLP:
     """
 
     def __init__(self, connectivity, targets, formulation=DEFAULT_FORMULATION, dropped_vertices=(),
-                 angle_margin=1e-4, dropped_penalty=DROPPED_PENALTY):
+                 angle_margin=1e-4, dropped_penalty=DROPPED_PENALTY, area_form="linear"):
         if formulation not in FORMULATIONS:
             raise ValueError("unknown formulation %r; choose one of %s" % (formulation, FORMULATIONS))
         self.formulation = formulation
@@ -149,7 +149,7 @@ class AngleNLP:
         kept_vertices = np.setdiff1d(np.arange(connectivity.n_vertices), dropped_vertices)
         if formulation == "log-chord":
             x, objective, g_eq, self._derivatives = self._build_log_chord(
-                connectivity, targets, kept_vertices, dropped_penalty)
+                connectivity, targets, kept_vertices, dropped_penalty, area_form)
             g_ineq = ca.MX(0, 1)             # (3)-(5) hold by construction (see the module docstring)
         else:
             x, objective, g_eq, g_ineq = self._build_paper_form(connectivity, targets, formulation,
@@ -205,7 +205,7 @@ class AngleNLP:
         return x, objective, g_eq, g_ineq
 
     @staticmethod
-    def _build_log_chord(connectivity, targets, kept_vertices, dropped_penalty=0.0):
+    def _build_log_chord(connectivity, targets, kept_vertices, dropped_penalty=0.0, area_form="linear"):
         """The log-chord form as g = A h(z) - b, with h one small function mapped over triangles.
 
         Every term of the objective and of (6)-(8) depends on one triangle's unknowns
@@ -238,8 +238,11 @@ class AngleNLP:
         # iterations instead of 23.)
         log_half_chords = [ca.log(ca.sin(e / 2)) + ca.log(ca.sin(u[j])) - ca.log(ca.sin(alpha[(j + 1) % 3]))
                            - ca.log(ca.sin(alpha[(j + 2) % 3])) for j in range(3)]
-        term = (targets.angle_weight * ca.sumsqr(alpha - beta)
-                + targets.area_weight * ((e - excess_target) / targets.excess_scale) ** 2)
+        if area_form == "log":
+            area_term = (z[3] - ca.log(excess_target)) ** 2
+        else:
+            area_term = ((e - excess_target) / targets.excess_scale) ** 2
+        term = targets.angle_weight * ca.sumsqr(alpha - beta) + targets.area_weight * area_term
         h_sx = ca.vertcat(term, ca.sum1(u) + e / 2 - np.pi, alpha, *log_half_chords)
         triangle = ca.Function("sphere_nlp_triangle", [z, beta, excess_target], [h_sx])
         triangle_jacobian = ca.Function("sphere_nlp_triangle_jac", [z, beta, excess_target],

@@ -16,7 +16,7 @@ vertex constraints are left out (see :class:`sphere_nlp.nlp.AngleNLP`).
 Plain numpy in and out; CasADi stays in :mod:`sphere_nlp.nlp`.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -55,6 +55,10 @@ WARM_START_OPTIONS = {
 # started (a factor e^2.5 ~ 12 in area), re-centred up to MAX_WINDOW_ROUNDS times if it ends on it.
 EXCESS_WINDOW = 2.5
 MAX_WINDOW_ROUNDS = 6
+
+# Area modes: the first phase moves every log excess by at most this per continuation step
+# (see area_continuation; knight.off original-areas failed with one step of 25, solved with four).
+AREA_CONTINUATION_STEP = 6.0
 
 # A solve counts only if every equality constraint (6)-(8) holds to this, whatever IPOPT reports.
 FEASIBILITY_TOLERANCE = 1e-8
@@ -324,14 +328,21 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                 x = run["x"]
             return run
 
-        run = windowed_solve(x0, "equality")
+        x_start = x0
+        if targets.area_weight > 0:
+            x_start = area_continuation(nlp_for=lambda tg: AngleNLP(connectivity, tg, formulation,
+                                                                    dropped_vertices=dropped,
+                                                                    area_form="log"),
+                                        targets=targets, x0=x0, n_faces=t, options=options,
+                                        progress=stage_progress("area-continuation"), stages=stages)
+        run = windowed_solve(x_start, "equality")
         u_min = np.min(run["x"][:3 * t])
         if not run["success"] or not u_min > np.log(nlp.angle_margin):
             # As the paper adds its inequalities only when needed: the optimum lies at (or the
             # solver ran into) a degenerate triangle, so solve again with u >= angle_margin, from
             # the equality result if it is usable, else from the feasible start.
             lower = np.log(nlp.angle_margin)
-            restart = run["x"] if np.isfinite(run["x"]).all() else x0
+            restart = run["x"] if np.isfinite(run["x"]).all() else x_start
             restart = restart.copy()
             restart[:3 * t] = np.maximum(restart[:3 * t], lower + 1e-3)
             run = windowed_solve(restart, "margin", inequalities=True)
@@ -340,7 +351,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             # (the redundancy is infinitesimal); elephant.obj converged to a metric with three cone
             # points at exactly those vertices. Solve again with every constraint.
             nlp = AngleNLP(connectivity, targets, formulation)
-            run = windowed_solve(x0, "all-constraints")
+            run = windowed_solve(x_start, "all-constraints")
         angles, excess = nlp.unpack(run["x"])
         return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess, start_kind)
 
@@ -363,6 +374,54 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         stages.append(_stage_record("inequality", run))
         angles, excess = nlp.unpack(run["x"])
     return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess, start_kind)
+
+
+def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, stages=None):
+    """Walk the log excesses from the start's to the targets' (the area modes' first phase).
+
+    The start (a conformal map) can be far from the area targets: on knight.off some log excesses
+    must change by 25. With the objective (9) the pull on a tiny triangle's log excess vanishes
+    with its size (d/ds (e^s - e')^2 = 2 e (e - e')) and is non-convex in s, so IPOPT crawled
+    (bunny.off original-areas: no result in 120 s) or diverged. This phase instead minimises the
+    same weighted sum with the area term (log e - log e'_tau)^2, convex in s with a pull that does
+    not fade, for targets e'_tau that move from the start's excesses to e' geometrically in steps
+    of at most :data:`AREA_CONTINUATION_STEP` per log excess. Its optimum is close to that of (9)
+    (5-40 more iterations there); the caller then solves (9) itself from it.
+
+    Parameters
+    ----------
+    nlp_for : callable(Targets) -> AngleNLP
+        Builds the log-area NLP for one set of targets.
+    targets : Targets
+    x0 : array
+        Start (log-chord variables) with its own excesses exp(x0[3t:]).
+    n_faces : int
+    options : dict
+        IPOPT options.
+    progress : callable(iteration, objective, violation, elapsed), optional
+    stages : list, optional
+        Stage records are appended here.
+
+    Returns
+    -------
+    x : array
+        The last successful point (x0 if the first step fails).
+    """
+    start_log = x0[3 * n_faces:]
+    target_log = np.log(targets.excess)
+    n_steps = max(1, int(np.ceil(np.max(np.abs(target_log - start_log)) / AREA_CONTINUATION_STEP)))
+    x = x0
+    for step in range(1, n_steps + 1):
+        tau = step / n_steps
+        excess = np.exp((1 - tau) * start_log + tau * target_log)
+        nlp = nlp_for(replace(targets, excess=excess * (4 * np.pi / excess.sum())))
+        run = nlp.solve(x, options=options, progress=progress)
+        if stages is not None:
+            stages.append(_stage_record("area-continuation-%d/%d" % (step, n_steps), run))
+        if not run["success"] or not np.isfinite(run["x"]).all():
+            break
+        x = run["x"]
+    return x
 
 
 def _stage_record(name, run):

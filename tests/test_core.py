@@ -185,3 +185,43 @@ def test_tiny_triangles_keep_their_angles():
     X, info = unfold(c, angles, excess=excess)
     assert certify(X, F).valid
     assert np.abs(spherical_angles(X, F) - angles).max() < 1e-6
+
+
+def test_area_continuation_walks_the_log_excesses_to_the_targets():
+    # The area modes' first phase: steps of at most AREA_CONTINUATION_STEP per log excess, each
+    # solved, ending with the excesses close to the targets although the start is far from them.
+    from sphere_nlp import solve
+
+    V, F = ellipsoid(2, axes=(1.0, 3.0, 0.4))
+    c = build_connectivity(F, len(V))
+    targets = make_targets("equal-areas", V, F, c.vertex_degree)
+    angles, excess, positions, _ = solve.feasible_start(c, V)
+    nlp = AngleNLP(c, targets, "log-chord", dropped_vertices=solve.independent_vertices(positions),
+                   area_form="log")
+    x0 = nlp.pack(angles, excess)
+    stages = []
+    x = solve.area_continuation(
+        lambda tg: AngleNLP(c, tg, "log-chord", dropped_vertices=solve.independent_vertices(positions),
+                            area_form="log"),
+        targets, x0, c.n_faces, dict(solve.DEFAULT_IPOPT_OPTIONS), stages=stages)
+    start_error = np.abs(np.log(excess / targets.excess))
+    n_steps = int(np.ceil(start_error.max() / solve.AREA_CONTINUATION_STEP))
+    assert len(stages) == n_steps and all(s["status"] == "Solve_Succeeded" for s in stages)
+    solved_angles, solved_excess = nlp.unpack(x)
+    assert solve.max_constraint_violation(c, solved_angles, solved_excess) < 1e-8
+    error = np.abs(np.log(solved_excess / targets.excess))
+    assert error.mean() < 0.1 * start_error.mean()
+
+
+@pytest.mark.parametrize("mode", ["equal-areas", "original-areas"])
+def test_area_modes_from_a_far_start(mode):
+    # The conformal start of a long ellipsoid crowds its ends, far from the area targets; the area
+    # modes must still end at a solution of (9) itself: the last stage solves the paper's
+    # objective, started from the continuation.
+    V, F = ellipsoid(3, axes=(1.0, 4.0, 0.5))
+    r = sphere_nlp.parameterize((V, F), target=mode)
+    names = [s["name"] for s in r.stages]
+    assert len(names) >= 3 and all(n.startswith("area-continuation") for n in names[:2])
+    assert names[-1].startswith("equality")
+    assert r.certificate.valid and r.max_constraint_violation <= 1e-8 and r.max_angle_error <= 1e-6
+    assert np.median(np.abs(np.log(r.excess / r.target_excess))) < 0.05
