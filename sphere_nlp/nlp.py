@@ -127,6 +127,13 @@ class AngleNLP:
         automatically. :func:`sphere_nlp.solve.solve_angles` checks all of (7) afterwards.
     angle_margin : float
         log-chord only: with ``inequalities=True`` every u = alpha - e/2 is kept >= this (radians).
+    dropped_penalty : float
+        log-chord only: weight of the penalty on the left-out vertex sums.
+    area_form : {"linear", "log"}
+        log-chord only: the area term of the objective. ``"linear"`` is (9),
+        ``area_weight * sum(((e - e') / e_mean)^2)``; ``"log"`` is
+        ``area_weight * sum((log e - log e')^2)``, convex in the unknown log e, which the area modes
+        solve first (:func:`sphere_nlp.solve.area_continuation`) before (9) itself.
 
     Notes
     -----
@@ -139,6 +146,8 @@ class AngleNLP:
                  angle_margin=1e-4, dropped_penalty=DROPPED_PENALTY, area_form="linear"):
         if formulation not in FORMULATIONS:
             raise ValueError("unknown formulation %r; choose one of %s" % (formulation, FORMULATIONS))
+        if area_form not in ("linear", "log"):
+            raise ValueError("area_form must be 'linear' or 'log', not %r" % (area_form,))
         self.formulation = formulation
         self.angle_margin = float(angle_margin)
         self.connectivity = connectivity

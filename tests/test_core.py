@@ -189,7 +189,7 @@ def test_tiny_triangles_keep_their_angles():
 
 def test_area_continuation_walks_the_log_excesses_to_the_targets():
     # The area modes' first phase: steps of at most AREA_CONTINUATION_STEP per log excess, each
-    # solved, ending with the excesses close to the targets although the start is far from them.
+    # capped, ending with the excesses close to the targets although the start is far from them.
     from sphere_nlp import solve
 
     V, F = ellipsoid(2, axes=(1.0, 3.0, 0.4))
@@ -206,9 +206,10 @@ def test_area_continuation_walks_the_log_excesses_to_the_targets():
         targets, x0, c.n_faces, dict(solve.DEFAULT_IPOPT_OPTIONS), stages=stages)
     start_error = np.abs(np.log(excess / targets.excess))
     n_steps = int(np.ceil(start_error.max() / solve.AREA_CONTINUATION_STEP))
-    assert len(stages) == n_steps and all(s["status"] == "Solve_Succeeded" for s in stages)
+    assert n_steps >= 2 and len(stages) == n_steps
+    assert all(s["iterations"] <= solve.AREA_CONTINUATION_ITERATIONS for s in stages)
     solved_angles, solved_excess = nlp.unpack(x)
-    assert solve.max_constraint_violation(c, solved_angles, solved_excess) < 1e-8
+    assert solve.max_constraint_violation(c, solved_angles, solved_excess) < 0.05   # measured 0.005
     error = np.abs(np.log(solved_excess / targets.excess))
     assert error.mean() < 0.1 * start_error.mean()
 
