@@ -79,7 +79,7 @@ class AngleSolution:
         IPOPT iterations over all stages.
     objective : float
     max_constraint_violation : float
-        max |residual| of (6), (7), (8) at (angles, excess), (8) in the paper's quotient form.
+        max |residual| of (6), (7), (8) at (angles, excess), (8) as a difference of edge cosines.
     stages : list of dict
         One entry per IPOPT run: name, status, iterations, objective, time_s, build_s.
     initial_angles, initial_excess : arrays
@@ -141,16 +141,25 @@ def linear_initial_guess(connectivity, targets):
 def constraint_residuals(connectivity, angles, excess):
     """Residuals of the equality constraints at (angles, excess), in the paper's form.
 
+    (8) is the difference of the two cosines of every edge, evaluated by the half-angle form.
+
     Returns
     -------
     dict with arrays ``triangle`` (6) (t,), ``vertex`` (7) (n,), ``edge`` (8) (m,).
     """
     flat = np.asarray(angles, float).ravel()
+    excess = np.asarray(excess, float)
     t = len(excess)
     corner = np.arange(3 * t)
     base, local = 3 * (corner // 3), corner % 3
     A, B, C = flat, flat[base + (local + 2) % 3], flat[base + (local + 1) % 3]
-    cosines = (np.cos(A) + np.cos(B) * np.cos(C)) / (np.sin(B) * np.sin(C))
+    # cos a by the half-angle form of the cosine rule, 1 - 2 sin(E/2) sin(A - E/2) / (sin B sin C)
+    # with E the given excess (an identity when (6) holds): the quotient
+    # (cos A + cos B cos C) / (sin B sin C) cancels to an absolute rounding error of ~1e-16 /
+    # (sin B sin C), which exceeded FEASIBILITY_TOLERANCE at a sliver with two corners at the
+    # 1e-4 margin (max_planck.obj: 1.0e-8 in float64, 4.8e-11 in long double).
+    half_excess = np.repeat(excess, 3) / 2
+    cosines = 1 - 2 * np.sin(half_excess) * np.sin(A - half_excess) / (np.sin(B) * np.sin(C))
     c = connectivity.edge_corner_indices()
     return {
         "triangle": flat.reshape(-1, 3).sum(1) - excess - np.pi,
