@@ -8,10 +8,12 @@ formulation, and the three redundant vertex constraints are left out (see
 
 1. Area modes only (area weight > 0): :func:`area_continuation` walks the excesses from the start's
    to the targets with a log-area objective, so that the next stage starts near its optimum.
-2. "equality": IPOPT on the objective (9) and the equalities, each run inside a trust region on
-   the log excesses (re-centred when touched).
-3. "margin", only if the optimum is at (or the solver ran into) a degenerate triangle: again with
-   every u = alpha - e/2 kept >= a margin, as the paper adds its inequalities only when needed.
+2. "equality": IPOPT on the objective (9) and the equalities, inside a trust region on the log
+   excesses (a window of +-EXCESS_WINDOW around the start).
+3. "margin", only if the optimum is at (or the solver ran into) a degenerate triangle, or the
+   equality run ended on its window: again with every u = alpha - e/2 kept >= a margin, as the
+   paper adds its inequalities only when needed; re-centred, warm-started and with a window
+   twice as wide each time its result touches the window.
 4. "penalty-1e+04", "penalty-1e+06", only if the left-out vertex sums did not come back: again
    from there with their penalty 100 and then 10,000 times stiffer.
 5. "all-constraints", only if they still did not: from the start with all of (7).
@@ -66,6 +68,11 @@ WARM_START_OPTIONS = {
 # started (a factor e^2.5 ~ 12 in area), re-centred up to MAX_WINDOW_ROUNDS times if it ends on it.
 EXCESS_WINDOW = 2.5
 MAX_WINDOW_ROUNDS = 6
+# Each re-centred run widens the window by this factor and is warm-started (multipliers kept, small
+# barrier): a cold restart spent 50-60 iterations re-converging where the last run ended, and the
+# optimum can lie far away (cheburashka.off: some log excesses move by 19; 289 iterations / 78 s
+# with fixed windows and cold restarts, 94 / 32 s with both).
+WINDOW_GROWTH = 2.0
 
 # Area modes: the first phase moves every log excess by at most this per continuation step
 # (see area_continuation; knight.off original-areas failed with one step of 25, solved with four).
@@ -97,7 +104,7 @@ class AngleSolution:
         IPOPT iterations over all stages.
     objective : float
     max_constraint_violation : float
-        max |residual| of (6), (7), (8) at (angles, excess), (8) in the paper's quotient form.
+        max |residual| of (6), (7), (8) at (angles, excess), (8) as a difference of edge cosines.
     stages : list of dict
         One entry per IPOPT run: name, status, iterations, objective, time_s, build_s.
     initial_angles, initial_excess : arrays
@@ -159,16 +166,25 @@ def linear_initial_guess(connectivity, targets):
 def constraint_residuals(connectivity, angles, excess):
     """Residuals of the equality constraints at (angles, excess), in the paper's form.
 
+    (8) is the difference of the two cosines of every edge, evaluated by the half-angle form.
+
     Returns
     -------
     dict with arrays ``triangle`` (6) (t,), ``vertex`` (7) (n,), ``edge`` (8) (m,).
     """
     flat = np.asarray(angles, float).ravel()
+    excess = np.asarray(excess, float)
     t = len(excess)
     corner = np.arange(3 * t)
     base, local = 3 * (corner // 3), corner % 3
     A, B, C = flat, flat[base + (local + 2) % 3], flat[base + (local + 1) % 3]
-    cosines = (np.cos(A) + np.cos(B) * np.cos(C)) / (np.sin(B) * np.sin(C))
+    # cos a by the half-angle form of the cosine rule, 1 - 2 sin(E/2) sin(A - E/2) / (sin B sin C)
+    # with E the given excess (an identity when (6) holds): the quotient
+    # (cos A + cos B cos C) / (sin B sin C) cancels to an absolute rounding error of ~1e-16 /
+    # (sin B sin C), which exceeded FEASIBILITY_TOLERANCE at a sliver with two corners at the
+    # 1e-4 margin (max_planck.obj: 1.0e-8 in float64, 4.8e-11 in long double).
+    half_excess = np.repeat(excess, 3) / 2
+    cosines = 1 - 2 * np.sin(half_excess) * np.sin(A - half_excess) / (np.sin(B) * np.sin(C))
     c = connectivity.edge_corner_indices()
     return {
         "triangle": flat.reshape(-1, 3).sum(1) - excess - np.pi,
@@ -205,8 +221,16 @@ def independent_vertices(positions):
 
 START_POINTS = ("auto", "conformal", "embedding", "linear")
 
+# Mobius normalisation of the angle modes' start (see starting_positions). "excess" moves the start
+# to the optimum's normalisation: nefertiti.obj's first run spent 150 s (55 iterations, not
+# converged) moving 78% of the log excesses by > 1 along a nearly flat Mobius direction (a dipole of
+# size 2.1); from the "excess" start it reached the same objective in 44 iterations. But it is not
+# the default: cheburashka 94 -> 274 iterations, max_planck 102 -> 122 (bunny 14 -> 11, brain
+# 10 -> 9, knight 80 -> 68, spot 12 -> 12), and nefertiti still stalled in its last digits.
+START_GAUGE = "area"
 
-def starting_positions(connectivity, vertices=None, kind="auto"):
+
+def starting_positions(connectivity, vertices=None, kind="auto", gauge="area"):
     """Valid spherical positions of the mesh to start the log-chord solve from.
 
     ``"conformal"``: the linear spherical conformal map (:func:`sphere_nlp.baselines.conformal_map`),
@@ -217,6 +241,10 @@ def starting_positions(connectivity, vertices=None, kind="auto"):
     certifies, else the conformal map with its flipped triangles repaired by
     :func:`sphere_nlp.untangle.untangle` if that certifies, else the embedding.
 
+    ``gauge="excess"`` then moves the start by the Mobius transformation minimising the sum of
+    squared excesses (:func:`sphere_nlp.embedding.excess_gauge`), the normalisation of the angle
+    modes' optimum (kept only if it certifies); ``"area"`` (default) keeps the area centring.
+
     Returns
     -------
     positions : (n, 3) array of unit vectors, a certified spherical triangulation
@@ -224,6 +252,18 @@ def starting_positions(connectivity, vertices=None, kind="auto"):
         Which start was used: "conformal", "conformal-untangled", "embedding" or
         "embedding-uncentred".
     """
+    positions, kind = _area_centred_start(connectivity, vertices, kind)
+    if gauge == "excess":
+        from .certify import certify
+        from .embedding import excess_gauge
+        moved = excess_gauge(positions, connectivity.faces)
+        if moved is not positions and certify(moved, connectivity.faces).valid:
+            return moved, kind
+    return positions, kind
+
+
+def _area_centred_start(connectivity, vertices, kind):
+    """:func:`starting_positions` with the area-centred gauge."""
     from .certify import certify
     from .embedding import convex_embedding, mobius_centre
 
@@ -253,7 +293,7 @@ def starting_positions(connectivity, vertices=None, kind="auto"):
     return positions, "embedding-uncentred"
 
 
-def feasible_start(connectivity, vertices=None, kind="auto"):
+def feasible_start(connectivity, vertices=None, kind="auto", gauge="area"):
     """Angles and excesses of a valid spherical triangulation of the mesh, and its positions.
 
     See :func:`starting_positions` for ``kind``.
@@ -267,7 +307,7 @@ def feasible_start(connectivity, vertices=None, kind="auto"):
     """
     from .certify import signed_solid_angles, spherical_angles
 
-    positions, kind = starting_positions(connectivity, vertices, kind)
+    positions, kind = starting_positions(connectivity, vertices, kind, gauge)
     return (spherical_angles(positions, connectivity.faces),
             signed_solid_angles(positions, connectivity.faces), positions, kind)
 
@@ -320,30 +360,42 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         init_angles, init_excess = linear_initial_guess(connectivity, targets)
         start_kind = "linear"
     else:
-        init_angles, init_excess, start_positions, start_kind = feasible_start(connectivity, vertices, start)
+        gauge = START_GAUGE if targets.area_weight == 0 else "area"
+        init_angles, init_excess, start_positions, start_kind = feasible_start(connectivity, vertices, start,
+                                                                               gauge)
     if formulation == "log-chord":
         dropped = independent_vertices(start_positions) if start != "linear" else []
         nlp = AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped)
         t = connectivity.n_faces
         x0 = nlp.pack(init_angles, init_excess)
 
-        def windowed_solve(x_start, name, inequalities=False):
+        def windowed_solve(x_start, name, inequalities=False, recentre=True):
             # Bounds log e within EXCESS_WINDOW of the current point act as a trust region: when most
             # triangles are tiny, scaling all their excesses together barely changes (6)-(8) and, in
             # the angle modes, not the objective either, so IPOPT took huge steps along that flat
             # direction (armadillo.obj, 43k vertices: diverged; with the window 17 iterations). The
-            # barrier terms also convexify it. If the result touches the window, re-centre and repeat.
-            x = x_start
+            # barrier terms also convexify it. If the result touches the window, re-centre and repeat
+            # (if recentre), else report it as touched (run["touched"]).
+            x, window, previous = x_start, EXCESS_WINDOW, None
             for round_ in range(MAX_WINDOW_ROUNDS):
                 log_e = x[3 * t:]
-                run = nlp.solve(x, inequalities=inequalities, options=options,
+                run_options, warm = options, {}
+                if previous is not None:
+                    run_options = dict(options, **WARM_START_OPTIONS)
+                    run_options.update(ipopt_options or {})
+                    lam_x = previous["lam_x"].copy()
+                    lam_x[3 * t:] = 0.0               # the old window's bounds are gone
+                    warm = dict(lam_g0=previous["lam_g"], lam_x0=lam_x)
+                run = nlp.solve(x, inequalities=inequalities, options=run_options,
                                 progress=stage_progress(name),
-                                excess_bounds=(log_e - EXCESS_WINDOW, log_e + EXCESS_WINDOW))
+                                excess_bounds=(log_e - window, log_e + window), **warm)
                 stages.append(_stage_record(name if round_ == 0 else "%s-recentred" % name, run))
                 moved = np.max(np.abs(run["x"][3 * t:] - log_e), initial=0.0)
-                if not run["success"] or not np.isfinite(run["x"]).all() or moved < 0.99 * EXCESS_WINDOW:
+                run["touched"] = bool(moved >= 0.99 * window)
+                if not run["success"] or not np.isfinite(run["x"]).all() or not run["touched"] or not recentre:
                     return run
-                x = run["x"]
+                x, previous = run["x"], run
+                window *= WINDOW_GROWTH
             return run
 
         x_start = x0
@@ -353,13 +405,19 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                                                                     area_form="log"),
                                         targets=targets, x0=x0, n_faces=t, options=options,
                                         progress=stage_progress("area-continuation"), stages=stages)
-        run = windowed_solve(x_start, "equality")
+        # The equality stage gets one window: a run that ends on it is continued by the margin
+        # stage instead of being re-centred, because the triangles that pull it are often
+        # degenerating slivers (max_planck.obj: 4 re-centred equality runs, 534 iterations, chased
+        # two corners of 0.12-1 deg slivers down to 1e-7 rad and ended in Restoration_Failed; the
+        # margin stage then needed 433 more; now 38 + 64 in all).
+        run = windowed_solve(x_start, "equality", recentre=False)
         with_margin = False
         u_min = np.min(run["x"][:3 * t])
-        if not run["success"] or not u_min > np.log(nlp.angle_margin):
+        if not run["success"] or run["touched"] or not u_min > np.log(nlp.angle_margin):
             # As the paper adds its inequalities only when needed: the optimum lies at (or the
-            # solver ran into) a degenerate triangle, so solve again with u >= angle_margin, from
-            # the equality result if it is usable, else from the feasible start.
+            # solver ran into) a degenerate triangle, or further than the window, so solve again
+            # with u >= angle_margin, from the equality result if it is usable, else from the
+            # feasible start.
             lower = np.log(nlp.angle_margin)
             restart = run["x"] if np.isfinite(run["x"]).all() else x_start
             restart = restart.copy()

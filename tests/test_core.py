@@ -226,3 +226,26 @@ def test_area_modes_from_a_far_start(mode):
     assert names[-1].startswith("equality")
     assert r.certificate.valid and r.max_constraint_violation <= 1e-8 and r.max_angle_error <= 1e-6
     assert np.median(np.abs(np.log(r.excess / r.target_excess))) < 0.05
+
+
+def test_excess_gauge_is_stationary_for_sum_of_squared_excesses_and_stays_valid():
+    from sphere_nlp import solve
+    from sphere_nlp.certify import certify, signed_solid_angles
+    from sphere_nlp.embedding import excess_gauge, mobius_centre
+
+    V, F = ellipsoid(2, axes=(1.0, 3.0, 0.4))
+    c = build_connectivity(F, len(V))
+    area_centred, _ = solve.starting_positions(c, V)
+    pushed = mobius_centre(area_centred, np.where(area_centred[:, 0] > 0, 30.0, 1.0))  # off-centre
+    moved = excess_gauge(pushed, F)
+
+    def weighted_mean(X):     # the gradient of sum(e^2) over Mobius boosts, up to a factor
+        e = signed_solid_angles(X, F)
+        centres = X[F].sum(1)
+        centres /= np.linalg.norm(centres, axis=1, keepdims=True)
+        return (e * e) @ centres / (e @ e), e @ e
+
+    (g_before, f_before), (g_after, f_after) = weighted_mean(pushed), weighted_mean(moved)
+    assert certify(moved, F).valid
+    assert f_after < f_before and np.linalg.norm(g_before) > 0.04
+    assert np.linalg.norm(g_after) < 0.2 * np.linalg.norm(g_before)   # first order only on coarse meshes
