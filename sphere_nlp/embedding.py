@@ -167,6 +167,14 @@ def convex_embedding(connectivity, vertices=None, weights="cotan", outer_face=No
     return X
 
 
+def _ball_automorphism(X, c):
+    """The Mobius transformation of the unit sphere taking the ball point c to the origin."""
+    # x -> ((1-|c|^2)(x-c) - |x-c|^2 c) / (1 - 2<x,c> + |c|^2 |x|^2), with |x| = 1.
+    d = X - c
+    Y = ((1 - c @ c) * d - np.einsum("ij,ij->i", d, d)[:, None] * c) / (1 - 2 * X @ c + c @ c)[:, None]
+    return Y / np.linalg.norm(Y, axis=1, keepdims=True)
+
+
 def mobius_centre(positions, weights=None, max_iter=100, tol=1e-9):
     """Move points on the unit sphere by a Mobius transformation until their weighted mean is 0.
 
@@ -199,19 +207,8 @@ def mobius_centre(positions, weights=None, max_iter=100, tol=1e-9):
         c = w @ X
         if np.linalg.norm(c) < tol:
             break
-        c = 0.5 * c
-        d = X - c
-        # The ball automorphism x -> ((1-|c|^2)(x-c) - |x-c|^2 c) / (1 - 2<x,c> + |c|^2 |x|^2), |x| = 1.
-        X = ((1 - c @ c) * d - np.einsum("ij,ij->i", d, d)[:, None] * c) / (1 - 2 * X @ c + c @ c)[:, None]
-        X /= np.linalg.norm(X, axis=1, keepdims=True)
+        X = _ball_automorphism(X, 0.5 * c)
     return X
-
-
-def _ball_automorphism(X, c):
-    """The Mobius transformation of the unit sphere taking the ball point c to the origin."""
-    d = X - c
-    Y = ((1 - c @ c) * d - np.einsum("ij,ij->i", d, d)[:, None] * c) / (1 - 2 * X @ c + c @ c)[:, None]
-    return Y / np.linalg.norm(Y, axis=1, keepdims=True)
 
 
 def excess_gauge(positions, faces, max_iter=50, tol=1e-4):

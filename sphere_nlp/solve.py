@@ -425,8 +425,8 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             run = windowed_solve(restart, "margin", inequalities=True)
             with_margin = True
         penalty = DROPPED_PENALTY
-        while (max_constraint_violation(connectivity, *nlp.unpack(run["x"])) > FEASIBILITY_TOLERANCE
-               and np.isfinite(run["x"]).all() and penalty < MAX_DROPPED_PENALTY):
+        violation = max_constraint_violation(connectivity, *nlp.unpack(run["x"]))
+        while violation > FEASIBILITY_TOLERANCE and np.isfinite(run["x"]).all() and penalty < MAX_DROPPED_PENALTY:
             # The three left-out vertex sums come back by themselves only near the solution set
             # (the redundancy is infinitesimal); with a weak penalty the solver can stop at a metric
             # whose sums are off there (hand_closed.obj equal-angles: by 2.5e-3). A stiffer penalty,
@@ -436,7 +436,8 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             nlp = AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped,
                            dropped_penalty=penalty)
             run = windowed_solve(run["x"], "penalty-%.0e" % penalty, inequalities=with_margin)
-        if max_constraint_violation(connectivity, *nlp.unpack(run["x"])) > FEASIBILITY_TOLERANCE:
+            violation = max_constraint_violation(connectivity, *nlp.unpack(run["x"]))
+        if violation > FEASIBILITY_TOLERANCE:
             # Last resort: every constraint (a singular Jacobian at the solution, so slow).
             nlp = AngleNLP(connectivity, targets, formulation)
             run = windowed_solve(x_start, "all-constraints")
@@ -500,14 +501,14 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
     start_log = x0[3 * n_faces:]
     target_log = np.log(targets.excess)
     n_steps = max(1, int(np.ceil(np.max(np.abs(target_log - start_log)) / AREA_CONTINUATION_STEP)))
+    # Only a start is needed, so each step is capped (the last iterations of a step refine the
+    # weak angle term and are repeated by the next step anyway).
+    capped = dict(options, max_iter=min(int(options.get("max_iter", 3000)), AREA_CONTINUATION_ITERATIONS))
     x = x0
     for step in range(1, n_steps + 1):
         tau = step / n_steps
         excess = np.exp((1 - tau) * start_log + tau * target_log)
         nlp = nlp_for(replace(targets, excess=excess * (4 * np.pi / excess.sum())))
-        # Only a start is needed, so each step is capped (the last iterations of a step refine
-        # the weak angle term and are repeated by the next step anyway).
-        capped = dict(options, max_iter=min(int(options.get("max_iter", 3000)), AREA_CONTINUATION_ITERATIONS))
         run = nlp.solve(x, options=capped, progress=progress)
         if stages is not None:
             stages.append(_stage_record("area-continuation-%d/%d" % (step, n_steps), run))
