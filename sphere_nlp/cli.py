@@ -72,8 +72,10 @@ class Progress:
         self.stream = stream or sys.stderr
         self.quiet = quiet
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-        self.last = 0.0                 # when the progress state was last shown
         self.start = time.perf_counter()
+        # When the progress state was last shown: a log gets its first state line after a pause,
+        # not "load, 0.0 s" ahead of an input error.
+        self.last = self.start
         self.pending = False            # an unfinished updating line is on the terminal
 
     def elapsed(self):
@@ -83,6 +85,13 @@ class Progress:
         """End the updating line (if any) so the next message starts on a line of its own."""
         if self.pending:
             self.stream.write("\n")
+            self.stream.flush()
+            self.pending = False
+
+    def clear_line(self):
+        """Erase the updating line (if any): an error message then stands alone."""
+        if self.pending:
+            self.stream.write("\r\033[K")
             self.stream.flush()
             self.pending = False
 
@@ -145,11 +154,17 @@ def run(args, progress):
     check_mesh_path(output)
     _check_suffix(args.png, ".png", "a picture")
     _check_suffix(args.textured_input, ".obj", "a textured mesh")
-    progress.say("sphere_nlp: mapping %s (target %s)" % (input_path, args.target))
+
+    def on_stage(name):
+        # Announced once the mesh has been read and validated, so bad input gets only its error line.
+        if name == "solve":
+            progress.say("sphere_nlp: mapping %s (target %s)" % (input_path, args.target))
+        progress.stage(name)
+
     result = parameterize(str(input_path), target=args.target, angle_weight=args.angle_weight,
                           area_weight=args.area_weight, formulation=args.formulation,
                           max_iter=args.max_iter, max_time=args.max_time, progress=progress.iteration,
-                          on_stage=progress.stage, check=False)
+                          on_stage=on_stage, check=False)
     for repair in result.repairs:
         progress.say("repaired: " + repair)
     if args.report:
@@ -192,6 +207,9 @@ def main(argv=None):
     try:
         try:
             return run(args, progress)
+        except errors.MeshInputError:
+            progress.clear_line()       # bad input: the error is the only line
+            raise
         finally:
             progress.finish_line()      # an error message gets a line of its own
     except errors.SphereNLPError as exc:

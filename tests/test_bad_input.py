@@ -194,9 +194,13 @@ def test_cli_without_quiet_still_ends_in_one_error_line(tmp_path, capsys):
     write_mesh(path, *meshgen.torus())
     status, stderr = run_cli(capsys, path, "-o", tmp_path / "s.off")
     assert status == 2
-    assert stderr.strip().splitlines()[-1] == ("sphere_nlp: error: mesh has genus 1 (V - E + F = 0): only "
-                                               "genus 0 (sphere-like) surfaces can be mapped to the sphere")
+    # Progress is announced only once the mesh is valid, so the error is the only line.
+    assert stderr.strip().splitlines() == ["sphere_nlp: error: mesh has genus 1 (V - E + F = 0): only "
+                                           "genus 0 (sphere-like) surfaces can be mapped to the sphere"]
     assert "Traceback" not in stderr and not (tmp_path / "s.off").exists()
+    status, stderr = run_cli(capsys, tmp_path / "missing.off", "-o", tmp_path / "s.off")
+    assert status == 2
+    assert_one_error_line(stderr, ["missing.off"])
 
 
 def test_cli_debug_shows_a_traceback(tmp_path, capsys):

@@ -345,6 +345,16 @@ def test_terminal_progress_is_one_line_finished_before_other_messages():
     assert stream.getvalue() == text                          # nothing pending: nothing added
 
 
+def test_terminal_progress_line_is_erased_before_an_input_error():
+    stream = FakeTerminal()
+    progress = Progress(stream=stream)
+    progress.stage("load")
+    progress.clear_line()
+    progress.finish_line()
+    # The stage line is overwritten by nothing, so the error that follows is the only visible line.
+    assert stream.getvalue().endswith("load, 0.0 s\r\033[K") and "\n" not in stream.getvalue()
+
+
 def test_log_progress_is_plain_periodic_lines():
     stream = io.StringIO()
     progress = Progress(stream=stream)
