@@ -369,12 +369,12 @@ class AngleNLP:
         return float(f), np.asarray(g).ravel()
 
     # -- solving ---------------------------------------------------------------------------------
-    def _bounds(self, inequalities, excess_bounds=None):
+    def _bounds(self, inequalities, excess_bounds=None, log_u_lower=None):
         lbx = np.full(self.n_variables, -np.inf)
         if inequalities and self.formulation == "log-chord":
             # u > 0 holds anyway; the bound keeps every u = alpha - e/2 at least a margin from 0,
             # because on some meshes the infimum of the objective is at a degenerate triangle.
-            lbx[:3 * self.n_faces] = np.log(self.angle_margin)
+            lbx[:3 * self.n_faces] = np.log(self.angle_margin) if log_u_lower is None else log_u_lower
         elif inequalities:
             lbx[:] = 0.0          # (3) alpha > 0 and, for the faithful form, (4) e > 0
         ubx = np.full(self.n_variables, np.inf)
@@ -403,7 +403,7 @@ class AngleNLP:
         return self._solvers[key]
 
     def solve(self, x0, inequalities=False, lam_g0=None, lam_x0=None, options=None, progress=None,
-              excess_bounds=None):
+              excess_bounds=None, log_u_lower=None):
         """Run IPOPT from x0.
 
         Parameters
@@ -419,6 +419,9 @@ class AngleNLP:
         excess_bounds : (lower, upper) arrays of length t, optional
             log-chord only: bounds on the log excesses (a trust region; see
             :func:`sphere_nlp.solve.solve_angles`).
+        log_u_lower : (3t,) array, optional
+            log-chord with ``inequalities=True`` only: lower bounds on log u per corner, instead of
+            ``log(angle_margin)`` everywhere.
 
         Returns
         -------
@@ -429,7 +432,7 @@ class AngleNLP:
         build_s = time.perf_counter() - start
         if callback is not None:
             callback.iteration, callback.start = 0, time.perf_counter()
-        lbx, ubx, lbg, ubg = self._bounds(inequalities, excess_bounds)
+        lbx, ubx, lbg, ubg = self._bounds(inequalities, excess_bounds, log_u_lower)
         args = dict(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
         if lam_g0 is not None:
             lam = np.zeros(len(lbg))

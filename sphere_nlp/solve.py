@@ -82,6 +82,10 @@ AREA_CONTINUATION_STEP = 6.0
 # step wandering for 2,057 of them) than capping them (269 iterations, 55 s, a lower optimum).
 AREA_CONTINUATION_ITERATIONS = 30
 
+# The margin stage lifts corners below the margin to it only if that changes none of them by more
+# than this factor in log u (see margin_restart).
+MAX_MARGIN_LIFT = 1.0
+
 # If the left-out vertex sums have not come back, the penalty on them is raised 100-fold up to this.
 MAX_DROPPED_PENALTY = 1e6
 
@@ -369,7 +373,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         t = connectivity.n_faces
         x0 = nlp.pack(init_angles, init_excess)
 
-        def windowed_solve(x_start, name, inequalities=False, recentre=True):
+        def windowed_solve(x_start, name, inequalities=False, recentre=True, log_u_lower=None):
             # Bounds log e within EXCESS_WINDOW of the current point act as a trust region: when most
             # triangles are tiny, scaling all their excesses together barely changes (6)-(8) and, in
             # the angle modes, not the objective either, so IPOPT took huge steps along that flat
@@ -388,7 +392,8 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                     warm = dict(lam_g0=previous["lam_g"], lam_x0=lam_x)
                 run = nlp.solve(x, inequalities=inequalities, options=run_options,
                                 progress=stage_progress(name),
-                                excess_bounds=(log_e - window, log_e + window), **warm)
+                                excess_bounds=(log_e - window, log_e + window), log_u_lower=log_u_lower,
+                                **warm)
                 stages.append(_stage_record(name if round_ == 0 else "%s-recentred" % name, run))
                 moved = np.max(np.abs(run["x"][3 * t:] - log_e), initial=0.0)
                 run["touched"] = bool(moved >= 0.99 * window)
@@ -411,18 +416,15 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         # two corners of 0.12-1 deg slivers down to 1e-7 rad and ended in Restoration_Failed; the
         # margin stage then needed 433 more; now 38 + 64 in all).
         run = windowed_solve(x_start, "equality", recentre=False)
-        with_margin = False
+        with_margin, log_u_lower = False, None
         u_min = np.min(run["x"][:3 * t])
         if not run["success"] or run["touched"] or not u_min > np.log(nlp.angle_margin):
             # As the paper adds its inequalities only when needed: the optimum lies at (or the
             # solver ran into) a degenerate triangle, or further than the window, so solve again
             # with u >= angle_margin, from the equality result if it is usable, else from the
             # feasible start.
-            lower = np.log(nlp.angle_margin)
-            restart = run["x"] if np.isfinite(run["x"]).all() else x_start
-            restart = restart.copy()
-            restart[:3 * t] = np.maximum(restart[:3 * t], lower + 1e-3)
-            run = windowed_solve(restart, "margin", inequalities=True)
+            restart, log_u_lower = margin_restart(run["x"], x_start, t, nlp.angle_margin)
+            run = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
             with_margin = True
         penalty = DROPPED_PENALTY
         violation = max_constraint_violation(connectivity, *nlp.unpack(run["x"]))
@@ -435,7 +437,8 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             penalty *= 100
             nlp = AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped,
                            dropped_penalty=penalty)
-            run = windowed_solve(run["x"], "penalty-%.0e" % penalty, inequalities=with_margin)
+            run = windowed_solve(run["x"], "penalty-%.0e" % penalty, inequalities=with_margin,
+                                 log_u_lower=log_u_lower)
             violation = max_constraint_violation(connectivity, *nlp.unpack(run["x"]))
         if violation > FEASIBILITY_TOLERANCE:
             # Last resort: every constraint (a singular Jacobian at the solution, so slow).
@@ -463,6 +466,33 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         stages.append(_stage_record("inequality", run))
         angles, excess = nlp.unpack(run["x"])
     return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess, start_kind)
+
+
+def margin_restart(x_equality, x_start, n_faces, angle_margin):
+    """Where the margin stage starts, and its lower bounds on log u per corner.
+
+    From the equality stage's result if it is finite and lifting its corners to the margin changes
+    none by more than a factor exp(MAX_MARGIN_LIFT), else from the stage's own start: a corner the equality stage drove
+    far below the margin (armadillo_remeshed.obj equal-areas: u = 1e-8), lifted to it, broke (8) by
+    ~7, the margin stage failed and the last-resort solve ran for over an hour. Corners of that
+    start which are themselves below the margin (nefertiti.obj's conformal start has a 180-degree
+    triangle with corners of 6e-7 rad) keep their own size, less 10%, as their bound.
+
+    Returns
+    -------
+    restart : array
+        A copy, with corners just inside their bounds.
+    log_u_lower : (3 n_faces,) array
+    """
+    margin = np.log(angle_margin)
+    restart = x_start
+    if np.isfinite(x_equality).all() and np.min(x_equality[:3 * n_faces]) > margin - MAX_MARGIN_LIFT:
+        restart = x_equality
+    restart = np.array(restart, float)
+    log_u = restart[:3 * n_faces]
+    log_u_lower = np.where(log_u < margin - MAX_MARGIN_LIFT, log_u - 0.1, margin)
+    restart[:3 * n_faces] = np.maximum(log_u, log_u_lower + 1e-3)
+    return restart, log_u_lower
 
 
 def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, stages=None):

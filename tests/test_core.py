@@ -249,3 +249,26 @@ def test_excess_gauge_is_stationary_for_sum_of_squared_excesses_and_stays_valid(
     assert certify(moved, F).valid
     assert f_after < f_before and np.linalg.norm(g_before) > 0.04
     assert np.linalg.norm(g_after) < 0.2 * np.linalg.norm(g_before)   # first order only on coarse meshes
+
+
+def test_margin_restart_never_lifts_a_corner_far():
+    from sphere_nlp.solve import MAX_MARGIN_LIFT, margin_restart
+    margin, t = 1e-4, 2
+    log_margin = np.log(margin)
+    start = np.log(np.array([0.5, 0.5, 2.0, 6e-7, 0.3, 2.8, 0.01, 0.02]))   # a start corner of 6e-7
+    near = start.copy()
+    near[:3] = np.log([0.5, 0.5 * margin, 2.0])                            # equality result: 0.5 margin
+    near[3] = np.log(0.5)
+    restart, lower = margin_restart(near, start, t, margin)
+    # Lifting 0.5 * margin to the margin is a small change: the equality result is used, lifted.
+    assert np.allclose(lower, log_margin) and np.all(restart[:6] >= log_margin + 1e-3 - 1e-12)
+    assert restart[1] == pytest.approx(log_margin + 1e-3) and np.array_equal(restart[6:], near[6:])
+    far = near.copy()
+    far[1] = log_margin - MAX_MARGIN_LIFT - 5                               # driven to 1e-8-ish
+    restart, lower = margin_restart(far, start, t, margin)
+    # ... too far to lift: restart from the stage's start, whose own tiny corner keeps its size.
+    assert np.array_equal(restart[6:], start[6:]) and restart[3] == start[3]
+    assert lower[3] == pytest.approx(start[3] - 0.1) and np.allclose(np.delete(lower, 3), log_margin)
+    assert np.all(restart[:6] > lower)
+    restart, _ = margin_restart(np.full(8, np.nan), start, t, margin)         # a diverged equality stage
+    assert np.array_equal(restart[6:], start[6:])
