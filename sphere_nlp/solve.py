@@ -230,7 +230,9 @@ START_POINTS = ("auto", "conformal", "embedding", "linear")
 # converged) moving 78% of the log excesses by > 1 along a nearly flat Mobius direction (a dipole of
 # size 2.1); from the "excess" start it reached the same objective in 44 iterations. But it is not
 # the default: cheburashka 94 -> 274 iterations, max_planck 102 -> 122 (bunny 14 -> 11, brain
-# 10 -> 9, knight 80 -> 68, spot 12 -> 12), and nefertiti still stalled in its last digits.
+# 10 -> 9, knight 80 -> 68, spot 12 -> 12), and nefertiti's equality stage then stalls (its caps
+# collapse towards u = 0; see the margin stage) where from the "area" start it certifies in 227
+# iterations (equality 66, margin 89 + 72; objective 207.1331 vs 207.1350 at the stall).
 START_GAUGE = "area"
 
 
@@ -475,8 +477,8 @@ def margin_restart(x_equality, x_start, n_faces, angle_margin):
     none by more than a factor exp(MAX_MARGIN_LIFT), else from the stage's own start: a corner the equality stage drove
     far below the margin (armadillo_remeshed.obj equal-areas: u = 1e-8), lifted to it, broke (8) by
     ~7, the margin stage failed and the last-resort solve ran for over an hour. Corners of that
-    start which are themselves below the margin (nefertiti.obj's conformal start has a 180-degree
-    triangle with corners of 6e-7 rad) keep their own size, less 10%, as their bound.
+    start which are themselves below the margin (nefertiti.obj's start in the excess gauge has a
+    180-degree triangle with corners of 6e-7 rad) keep their own size, less 10%, as their bound.
 
     Returns
     -------
