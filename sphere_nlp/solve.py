@@ -12,8 +12,9 @@ formulation, and the three redundant vertex constraints are left out (see
    excesses (a window of +-EXCESS_WINDOW around the start).
 3. "margin", only if the optimum is at (or the solver ran into) a degenerate triangle, or the
    equality run ended on its window: again with every u = alpha - e/2 kept >= a margin, as the
-   paper adds its inequalities only when needed; re-centred, warm-started and with a window
-   twice as wide each time its result touches the window.
+   paper adds its inequalities only when needed; from the equality result, or from the stage's
+   start if that result has a corner far below the margin (:func:`margin_restart`); re-centred,
+   warm-started and with a window twice as wide each time its result touches the window.
 4. "penalty-1e+04", "penalty-1e+06", only if the left-out vertex sums did not come back: again
    from there with their penalty 100 and then 10,000 times stiffer.
 5. "all-constraints", only if they still did not: from the start with all of (7).
