@@ -352,6 +352,9 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     if max_time is not None:
         options["max_wall_time"] = float(max_time)
     options.update(ipopt_options or {})
+    # Warm-started runs: small barrier and bound pushes, but the caller's options still win.
+    warm_options = dict(options, **WARM_START_OPTIONS)
+    warm_options.update(ipopt_options or {})
 
     def stage_progress(name):
         if progress is None:
@@ -388,8 +391,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                 log_e = x[3 * t:]
                 run_options, warm = options, {}
                 if previous is not None:
-                    run_options = dict(options, **WARM_START_OPTIONS)
-                    run_options.update(ipopt_options or {})
+                    run_options = warm_options
                     lam_x = previous["lam_x"].copy()
                     lam_x[3 * t:] = 0.0               # the old window's bounds are gone
                     warm = dict(lam_g0=previous["lam_g"], lam_x0=lam_x)
@@ -456,9 +458,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     stages.append(_stage_record("equality", run))
     angles, excess = nlp.unpack(run["x"])
     if violates_inequalities(angles, excess):
-        warm = dict(options, **WARM_START_OPTIONS)
-        warm.update(ipopt_options or {})
-        run = nlp.solve(run["x"], inequalities=True, lam_g0=run["lam_g"], options=warm,
+        run = nlp.solve(run["x"], inequalities=True, lam_g0=run["lam_g"], options=warm_options,
                         progress=stage_progress("inequality"))
         if not run["success"]:
             # A warm start from an infeasible point can stall; a cold start with the default barrier
