@@ -108,3 +108,26 @@ def test_compare_rejects_unknown_methods_and_bad_meshes_before_running(tmp_path)
     assert not out.exists()                                   # the good mesh did not run either
     p = run("compare", tmp_path / "missing.off", "--out", out)
     assert p.returncode == 2 and "missing.off" in p.stderr and not out.exists()
+
+
+def test_compare_all_merge_from_replaces_and_adds_rows_without_solving(tmp_path):
+    from pathlib import Path
+    script = Path(__file__).resolve().parent.parent / "benchmarks" / "compare_all.py"
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    row = json.loads('{"mesh": "knight.off", "method": "conformal", "n_vertices": 502, "valid": true, '
+                     '"flipped": 0, "mean_abs_angle_diff_deg": 1.0, "qc_mean": 1.1, "qc_max": 2.0, '
+                     '"mean_abs_log_area": 0.5, "time_s": 0.1, "status": "valid"}')
+    old = [row, dict(row, method="cmcf")]
+    (docs / "compare.json").write_text(json.dumps(old))
+    new = [dict(row, method="cmcf", qc_mean=9.5), dict(row, mesh="spot.obj")]
+    (tmp_path / "new.json").write_text(json.dumps(new))
+    proc = subprocess.run([sys.executable, str(script), "--merge-from", str(tmp_path / "new.json"),
+                           "--out", str(docs)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads((docs / "compare.json").read_text())
+    assert sorted((r["mesh"], r["method"], r["qc_mean"]) for r in rows) == [
+        ("knight.off", "cmcf", 9.5), ("knight.off", "conformal", 1.1), ("spot.obj", "conformal", 1.1)]
+    table = (docs / "compare.md").read_text()
+    assert "9.5" in table and "spot.obj" in table
+    assert sorted(p.name for p in docs.iterdir()) == ["compare.json", "compare.md"]
