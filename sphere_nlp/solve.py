@@ -8,13 +8,14 @@ formulation, and the three redundant vertex constraints are left out (see
 
 1. Area modes only (area weight > 0): :func:`area_continuation` walks the excesses from the start's
    to the targets with a log-area objective, so that the next stage starts near its optimum.
-2. "equality": IPOPT on the objective (9) and the equalities, inside a trust region on the log
-   excesses (a window of +-EXCESS_WINDOW around the start).
-3. "margin", only if the optimum is at (or the solver ran into) a degenerate triangle, or the
-   equality run ended on its window: again with every u = alpha - e/2 kept >= a margin, as the
-   paper adds its inequalities only when needed; from the equality result, or from the stage's
-   start if that result has a corner far below the margin (:func:`margin_restart`); re-centred,
-   warm-started and with a window twice as wide each time its result touches the window.
+2. "equality" (angle modes only): IPOPT on the objective (9) and the equalities, inside a trust
+   region on the log excesses (a window of +-EXCESS_WINDOW around the start).
+3. "margin", in the area modes always, in the angle modes only if the optimum is at (or the
+   solver ran into) a degenerate triangle, or the equality run ended on its window: with every
+   u = alpha - e/2 kept >= a margin, as the paper adds its inequalities only when needed; from the
+   equality result, or from the stage's start if that result has a corner far below the margin
+   (:func:`margin_restart`); re-centred, warm-started and with a window twice as wide each time its
+   result touches the window.
 4. "penalty-1e+04", "penalty-1e+06", only if the left-out vertex sums did not come back: again
    from there with their penalty 100 and then 10,000 times stiffer.
 5. "all-constraints", only if they still did not: from the start with all of (7).
@@ -50,6 +51,12 @@ DEFAULT_IPOPT_OPTIONS = {
     # METIS ordering for MUMPS: MUMPS's automatic choice fills in badly on these KKT systems
     # (10,242 vertices: 3 iterations took 243 s with the default ordering, 20 s with METIS).
     "mumps_pivot_order": 5,
+    # The filter's cap on the constraint violation (1-norm), theta_max_fact * max(1, start's): at
+    # IPOPT's default (1e4) one full step took armadillo_remeshed.obj original-areas' margin stage
+    # from max violation 0.07 to 5.5, past sin(alpha) = 0 (evaluation errors), and it never came
+    # back (restoration failed; the last-resort solve ran for over half an hour). With 10 it
+    # certifies (614 iterations); on the other benchmark rows it changed iterations by -5..+5.
+    "theta_max_fact": 10.0,
 }
 
 # Warm start of the inequality stage from the equality solution: start the barrier small and
@@ -415,20 +422,30 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                                                                     area_form="log"),
                                         targets=targets, x0=x0, n_faces=t, options=options,
                                         progress=stage_progress("area-continuation"), stages=stages)
-        # The equality stage gets one window: a run that ends on it is continued by the margin
-        # stage instead of being re-centred, because the triangles that pull it are often
-        # degenerating slivers (max_planck.obj: 4 re-centred equality runs, 534 iterations, chased
-        # two corners of 0.12-1 deg slivers down to 1e-7 rad and ended in Restoration_Failed; the
-        # margin stage then needed 433 more; now 38 + 64 in all).
-        run = windowed_solve(x_start, "equality", recentre=False)
         with_margin, log_u_lower = False, None
-        u_min = np.min(run["x"][:3 * t])
-        if not run["success"] or run["touched"] or not u_min > np.log(nlp.angle_margin):
+        if targets.area_weight > 0:
+            # Area modes go straight to the margin stage: their optimum is nearly always at a
+            # degenerate triangle, which the equality stage chases towards log u = -inf for
+            # hundreds of iterations before the margin stage starts again anyway
+            # (armadillo_remeshed.obj equal-areas: 667 equality + 627 margin iterations, now 627;
+            # knight.off original-areas 1,443 iterations in all, now 188).
+            needs_margin, x_equality = True, x_start
+        else:
+            # The equality stage gets one window: a run that ends on it is continued by the margin
+            # stage instead of being re-centred, because the triangles that pull it are often
+            # degenerating slivers (max_planck.obj: 4 re-centred equality runs, 534 iterations,
+            # chased two corners of 0.12-1 deg slivers down to 1e-7 rad and ended in
+            # Restoration_Failed; the margin stage then needed 433 more; now 38 + 64 in all).
+            run = windowed_solve(x_start, "equality", recentre=False)
+            x_equality = run["x"]
+            needs_margin = (not run["success"] or run["touched"]
+                            or not np.min(run["x"][:3 * t]) > np.log(nlp.angle_margin))
+        if needs_margin:
             # As the paper adds its inequalities only when needed: the optimum lies at (or the
             # solver ran into) a degenerate triangle, or further than the window, so solve again
             # with u >= angle_margin, from the equality result if it is usable, else from the
             # feasible start.
-            restart, log_u_lower = margin_restart(run["x"], x_start, t, nlp.angle_margin)
+            restart, log_u_lower = margin_restart(x_equality, x_start, t, nlp.angle_margin)
             run = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
             with_margin = True
         penalty = DROPPED_PENALTY

@@ -224,6 +224,10 @@ def test_area_modes_from_a_far_start(mode):
     names = [s["name"] for s in r.stages]
     assert len(names) >= 3 and all(n.startswith("area-continuation") for n in names[:2])
     assert not names[-1].startswith("area-continuation")      # the last stage solves (9) itself
+    # ... straight in the margin stage (no equality stage chasing degenerate corners), so every
+    # u = alpha - e/2 keeps the margin.
+    assert "equality" not in names and names[len([n for n in names if n.startswith("area")])] == "margin"
+    assert (r.angles - r.excess[:, None] / 2).min() >= 1e-4 * (1 - 1e-9)
     assert r.certificate.valid and r.max_constraint_violation <= 1e-8 and r.max_angle_error <= 1e-6
     assert np.median(np.abs(np.log(r.excess / r.target_excess))) < 0.05
 
