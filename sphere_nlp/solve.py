@@ -100,6 +100,11 @@ MAX_DROPPED_PENALTY = 1e6
 # A solve counts only if every equality constraint (6)-(8) holds to this, whatever IPOPT reports.
 FEASIBILITY_TOLERANCE = 1e-8
 
+# A run that ends with a larger violation than this has left the solution set (a vertex sum off by
+# pi, say), which the penalty stages cannot repair from there; runs that merely stop short end
+# far below it (hand_closed.obj equal-angles: 2.5e-3 before the penalty stages).
+DIVERGED_VIOLATION = 0.1
+
 
 @dataclass
 class AngleSolution:
@@ -422,32 +427,35 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                                                                     area_form="log"),
                                         targets=targets, x0=x0, n_faces=t, options=options,
                                         progress=stage_progress("area-continuation"), stages=stages)
-        with_margin, log_u_lower = False, None
+        with_margin, log_u_lower, direct = False, None, None
         if targets.area_weight > 0:
             # Area modes go straight to the margin stage: their optimum is nearly always at a
             # degenerate triangle, which the equality stage chases towards log u = -inf for
             # hundreds of iterations before the margin stage starts again anyway
-            # (armadillo_remeshed.obj equal-areas: 667 equality + 627 margin iterations, now 627;
+            # (armadillo_remeshed.obj equal-areas: 667 equality + 627 margin iterations, now 638;
             # knight.off original-areas 1,443 iterations in all, now 188).
-            needs_margin, x_equality = True, x_start
-        else:
-            # The equality stage gets one window: a run that ends on it is continued by the margin
-            # stage instead of being re-centred, because the triangles that pull it are often
-            # degenerating slivers (max_planck.obj: 4 re-centred equality runs, 534 iterations,
-            # chased two corners of 0.12-1 deg slivers down to 1e-7 rad and ended in
-            # Restoration_Failed; the margin stage then needed 433 more; now 38 + 64 in all).
+            restart, log_u_lower = margin_restart(x_start, x_start, t, nlp.angle_margin)
+            direct = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
+            run, with_margin = direct, True
+        if direct is None or _diverged(connectivity, nlp, direct["x"]):
+            # Angle modes, or an area mode whose direct margin stage ran away from the solution
+            # set (hand_closed.obj original-areas: violation 5.5): the equality stage first.
+            # It gets one window: a run that ends on it is continued by the margin stage instead
+            # of being re-centred, because the triangles that pull it are often degenerating
+            # slivers (max_planck.obj: 4 re-centred equality runs, 534 iterations, chased two
+            # corners of 0.12-1 deg slivers down to 1e-7 rad and ended in Restoration_Failed; the
+            # margin stage then needed 433 more; now 38 + 64 in all).
             run = windowed_solve(x_start, "equality", recentre=False)
-            x_equality = run["x"]
-            needs_margin = (not run["success"] or run["touched"]
-                            or not np.min(run["x"][:3 * t]) > np.log(nlp.angle_margin))
-        if needs_margin:
-            # As the paper adds its inequalities only when needed: the optimum lies at (or the
-            # solver ran into) a degenerate triangle, or further than the window, so solve again
-            # with u >= angle_margin, from the equality result if it is usable, else from the
-            # feasible start.
-            restart, log_u_lower = margin_restart(x_equality, x_start, t, nlp.angle_margin)
-            run = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
-            with_margin = True
+            with_margin, log_u_lower = False, None
+            if (not run["success"] or run["touched"]
+                    or not np.min(run["x"][:3 * t]) > np.log(nlp.angle_margin)):
+                # As the paper adds its inequalities only when needed: the optimum lies at (or
+                # the solver ran into) a degenerate triangle, or further than the window, so
+                # solve again with u >= angle_margin, from the equality result if it is usable,
+                # else from the feasible start.
+                restart, log_u_lower = margin_restart(run["x"], x_start, t, nlp.angle_margin)
+                run = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
+                with_margin = True
         penalty = DROPPED_PENALTY
         violation = max_constraint_violation(connectivity, *nlp.unpack(run["x"]))
         while violation > FEASIBILITY_TOLERANCE and np.isfinite(run["x"]).all() and penalty < MAX_DROPPED_PENALTY:
@@ -486,6 +494,13 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         stages.append(_stage_record("inequality", run))
         angles, excess = nlp.unpack(run["x"])
     return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess, start_kind)
+
+
+def _diverged(connectivity, nlp, x):
+    """Whether a run ended far from the solution set (not merely short of the tolerance)."""
+    if not np.isfinite(x).all():
+        return True
+    return max_constraint_violation(connectivity, *nlp.unpack(x)) > DIVERGED_VIOLATION
 
 
 def margin_restart(x_equality, x_start, n_faces, angle_margin):

@@ -276,3 +276,42 @@ def test_margin_restart_never_lifts_a_corner_far():
     assert np.all(restart[:6] > lower)
     restart, _ = margin_restart(np.full(8, np.nan), start, t, margin)         # a diverged equality stage
     assert np.array_equal(restart[6:], start[6:])
+
+
+def test_area_mode_falls_back_to_the_equality_stage_when_the_direct_margin_stage_diverges(monkeypatch):
+    # hand_closed.obj original-areas: the margin stage straight from the continuation ended with
+    # violation 5.5; the equality-first path must then run and still certify.
+    from sphere_nlp import solve
+
+    verdicts = []
+    real = solve._diverged
+
+    def first_run_diverged(connectivity, nlp, x):
+        verdicts.append(real(connectivity, nlp, x))
+        return len(verdicts) == 1
+
+    monkeypatch.setattr(solve, "_diverged", first_run_diverged)
+    V, F = ellipsoid(2, axes=(1.0, 2.0, 0.7))
+    r = sphere_nlp.parameterize((V, F), target="original-areas")
+    names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
+    assert names[0] == "margin" and "equality" in names[1:]
+    assert verdicts == [False]                    # the real check passed that run: no false alarm
+    assert r.certificate.valid and r.max_constraint_violation <= 1e-8
+
+
+def test_diverged_flags_non_finite_or_far_infeasible_points_only():
+    from sphere_nlp import solve
+    from sphere_nlp.nlp import AngleNLP
+    from sphere_nlp.targets import make_targets
+
+    V, F = ellipsoid(1)
+    c = build_connectivity(F, len(V))
+    targets = make_targets("original-angles", V, F, c.vertex_degree)
+    angles, excess, _, _ = solve.feasible_start(c, V)
+    nlp = AngleNLP(c, targets)
+    x = nlp.pack(angles, excess)
+    assert not solve._diverged(c, nlp, x)
+    x_off = x.copy()
+    x_off[0] += 1.0                     # one corner e times larger: a vertex sum off by far more than 0.1
+    assert solve._diverged(c, nlp, x_off)
+    assert solve._diverged(c, nlp, np.full_like(x, np.nan))
