@@ -8,8 +8,9 @@ formulation, and the three redundant vertex constraints are left out (see
 
 1. Area modes only (area weight > 0): :func:`area_continuation` walks the excesses from the start's
    to the targets with a log-area objective, so that the next stage starts near its optimum.
-2. "equality" (angle modes only): IPOPT on the objective (9) and the equalities, inside a trust
-   region on the log excesses (a window of +-EXCESS_WINDOW around the start).
+2. "equality" (angle modes; area modes only if their direct margin stage diverged): IPOPT on the
+   objective (9) and the equalities, inside a trust region on the log excesses (a window of
+   +-EXCESS_WINDOW around the start).
 3. "margin", in the area modes always, in the angle modes only if the optimum is at (or the
    solver ran into) a degenerate triangle, or the equality run ended on its window: with every
    u = alpha - e/2 kept >= a margin, as the paper adds its inequalities only when needed; from the
@@ -54,8 +55,9 @@ DEFAULT_IPOPT_OPTIONS = {
     # The filter's cap on the constraint violation (1-norm), theta_max_fact * max(1, start's): at
     # IPOPT's default (1e4) one full step took armadillo_remeshed.obj original-areas' margin stage
     # from max violation 0.07 to 5.5, past sin(alpha) = 0 (evaluation errors), and it never came
-    # back (restoration failed; the last-resort solve ran for over half an hour). With 10 it
-    # certifies (614 iterations); on the other benchmark rows it changed iterations by -5..+5.
+    # back (restoration failed; the last-resort solve ran for over half an hour). With 10 that
+    # stage certified (614 iterations); on the angle-mode benchmark rows it changed iterations by
+    # -3..+5, to the same optima.
     "theta_max_fact": 10.0,
 }
 
