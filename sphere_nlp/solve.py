@@ -455,7 +455,10 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                 # the solver ran into) a degenerate triangle, or further than the window, so
                 # solve again with u >= angle_margin, from the equality result if it is usable,
                 # else from the feasible start.
-                restart, log_u_lower = margin_restart(run["x"], x_start, t, nlp.angle_margin)
+                # After a diverged direct run, x_start is known to fail: lift the equality
+                # result's corners however far they are below the margin instead.
+                max_lift = MAX_MARGIN_LIFT if direct is None else np.inf
+                restart, log_u_lower = margin_restart(run["x"], x_start, t, nlp.angle_margin, max_lift)
                 run = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
                 with_margin = True
         penalty = DROPPED_PENALTY
@@ -505,15 +508,16 @@ def _diverged(connectivity, nlp, x):
     return max_constraint_violation(connectivity, *nlp.unpack(x)) > DIVERGED_VIOLATION
 
 
-def margin_restart(x_equality, x_start, n_faces, angle_margin):
+def margin_restart(x_equality, x_start, n_faces, angle_margin, max_lift=MAX_MARGIN_LIFT):
     """Where the margin stage starts, and its lower bounds on log u per corner.
 
     From the equality stage's result if it is finite and lifting its corners to the margin changes
-    none by more than a factor exp(MAX_MARGIN_LIFT), else from the stage's own start: a corner the equality stage drove
+    none by more than a factor exp(max_lift), else from the stage's own start: a corner the equality stage drove
     far below the margin (armadillo_remeshed.obj equal-areas: u = 1e-8), lifted to it, broke (8) by
     ~7, the margin stage failed and the last-resort solve ran for over an hour. Corners of that
     start which are themselves below the margin (nefertiti.obj's start in the excess gauge has a
-    180-degree triangle with corners of 6e-7 rad) keep their own size, less 10%, as their bound.
+    180-degree triangle with corners of 6e-7 rad) keep their own size, less 10%, as their bound;
+    so do the equality result's with ``max_lift=inf`` (used once the stage's start is known to fail).
 
     Returns
     -------
@@ -523,7 +527,7 @@ def margin_restart(x_equality, x_start, n_faces, angle_margin):
     """
     margin = np.log(angle_margin)
     restart = x_start
-    if np.isfinite(x_equality).all() and np.min(x_equality[:3 * n_faces]) > margin - MAX_MARGIN_LIFT:
+    if np.isfinite(x_equality).all() and np.min(x_equality[:3 * n_faces]) > margin - max_lift:
         restart = x_equality
     restart = np.array(restart, float)
     log_u = restart[:3 * n_faces]

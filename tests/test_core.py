@@ -276,6 +276,10 @@ def test_margin_restart_never_lifts_a_corner_far():
     assert np.all(restart[:6] > lower)
     restart, _ = margin_restart(np.full(8, np.nan), start, t, margin)         # a diverged equality stage
     assert np.array_equal(restart[6:], start[6:])
+    # With no lift limit (after a diverged direct margin stage) the equality result is kept as it
+    # is: its far corner keeps its own size as bound instead of being lifted.
+    restart, lower = margin_restart(far, start, t, margin, max_lift=np.inf)
+    assert np.array_equal(restart, far) and lower[1] == pytest.approx(far[1] - 0.1)
 
 
 def test_area_mode_falls_back_to_the_equality_stage_when_the_direct_margin_stage_diverges(monkeypatch):
