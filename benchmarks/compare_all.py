@@ -48,10 +48,7 @@ def main(argv=None):
     if args.merge_from:
         args.merge = True
         rows = [row for path in args.merge_from for row in json.loads(Path(path).read_text())]
-        (out / ".compare_all").mkdir(parents=True, exist_ok=True)
-        write_json(out / ".compare_all" / "compare.json", rows)
-        with atomic_output(out / ".compare_all" / "compare.md") as handle:
-            handle.write(markdown_table(rows))
+        out.mkdir(parents=True, exist_ok=True)
         command = "python benchmarks/compare_all.py --merge-from %s" % " ".join(args.merge_from)
     else:
         names = args.meshes if args.meshes else SMALL + (LARGE if args.all else [])
@@ -77,14 +74,14 @@ def main(argv=None):
                   "`python benchmarks/compare_all.py --meshes ... --merge` (each row's time was measured "
                   "in its own run; the last was `%s`). Columns: see the README section "
                   "*Comparing maps*.\n\n" % command)
-        write_json(out / "compare.json", rows)
-        (out / ".compare_all" / "compare.json").unlink()
-    else:
-        (out / ".compare_all" / "compare.json").replace(out / "compare.json")
+    write_json(out / "compare.json", rows)
     with atomic_output(out / "compare.md") as handle:
         handle.write(header + markdown_table(rows) + "\n")
-    (out / ".compare_all" / "compare.md").unlink()
-    (out / ".compare_all").rmdir()
+    scratch = out / ".compare_all"          # compare()'s own copies, kept until the table is written
+    if scratch.is_dir():
+        for name in ("compare.json", "compare.md"):
+            (scratch / name).unlink(missing_ok=True)
+        scratch.rmdir()
 
 
 def merged_rows(rows):
