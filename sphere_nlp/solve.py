@@ -455,8 +455,9 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                 # the solver ran into) a degenerate triangle, or further than the window, so
                 # solve again with u >= angle_margin, from the equality result if it is usable,
                 # else from the feasible start.
-                # After a diverged direct run, x_start is known to fail: lift the equality
-                # result's corners however far they are below the margin instead.
+                # After a diverged direct run, x_start is known to fail: start from the equality
+                # result however far its corners are below the margin (they keep their own size,
+                # less 10%, as bound; see margin_restart).
                 max_lift = MAX_MARGIN_LIFT if direct is None else np.inf
                 restart, log_u_lower = margin_restart(run["x"], x_start, t, nlp.angle_margin, max_lift)
                 run = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
