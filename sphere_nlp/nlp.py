@@ -69,16 +69,28 @@ def edge_cosines_sx(alpha, prev_idx, next_idx):
 
 
 class _ProgressCallback(ca.Callback):
-    """IPOPT iteration callback forwarding (iteration, objective, violation, elapsed) to a function."""
+    """IPOPT iteration callback: reports (iteration, objective, violation, elapsed) to a function, and
+    stops the run once it has diverged.
+
+    A run counts as diverged when its max constraint violation has stayed above
+    ``self.abort_violation`` for ``self.abort_iterations`` iterations in a row (see
+    :meth:`AngleNLP.solve`); IPOPT then ends with User_Requested_Stop at that iterate.
+    """
 
     def __init__(self, n_x, n_g, lbg, ubg, report):
         ca.Callback.__init__(self)
         self._n_x, self._n_g = n_x, n_g
         self._lbg, self._ubg = lbg, ubg
         self._report = report
+        self.reset(None, 0)
+        self.construct("sphere_nlp_progress", {})
+
+    def reset(self, abort_violation, abort_iterations):
         self.iteration = 0
         self.start = time.perf_counter()
-        self.construct("sphere_nlp_progress", {})
+        self.abort_violation, self.abort_iterations = abort_violation, abort_iterations
+        self.iterations_above = 0
+        self.aborted = False
 
     def get_n_in(self):
         return ca.nlpsol_n_out()
@@ -105,9 +117,16 @@ class _ProgressCallback(ca.Callback):
     def eval(self, arg):
         g = np.asarray(arg[ca.nlpsol_out().index("g")]).ravel()
         violation = float(np.max(np.maximum(self._lbg - g, g - self._ubg), initial=0.0))
-        self._report(self.iteration, float(arg[ca.nlpsol_out().index("f")]), violation,
-                     time.perf_counter() - self.start)
+        if self._report is not None:
+            self._report(self.iteration, float(arg[ca.nlpsol_out().index("f")]), violation,
+                         time.perf_counter() - self.start)
         self.iteration += 1
+        # not (violation <= ...) so that a NaN violation counts as above
+        above = self.abort_violation is not None and not violation <= self.abort_violation
+        self.iterations_above = self.iterations_above + 1 if above else 0
+        if self.abort_violation is not None and self.iterations_above >= self.abort_iterations:
+            self.aborted = True
+            return [1]                      # non-zero asks IPOPT to stop
         return [0]
 
 
@@ -386,24 +405,22 @@ class AngleNLP:
             ubg[self.n_equalities:] = np.inf
         return lbx, ubx, lbg, ubg
 
-    def _solver(self, inequalities, options, progress):
-        key = (inequalities, tuple(sorted(options.items())), progress is not None)
+    def _solver(self, inequalities, options):
+        key = (inequalities, tuple(sorted(options.items())))
         if key not in self._solvers:
             g = ca.vertcat(self._g_eq, self._g_ineq) if inequalities else self._g_eq
             opts = {"print_time": False, "show_eval_warnings": False, "ipopt": dict(options)}
             if not inequalities or self.n_inequalities == 0:
                 opts.update(self._derivatives)     # exact derivatives built in linear time
-            callback = None
-            if progress is not None:
-                _, _, lbg, ubg = self._bounds(inequalities)
-                callback = _ProgressCallback(self.n_variables, g.numel(), lbg, ubg, progress)
-                opts["iteration_callback"] = callback
+            _, _, lbg, ubg = self._bounds(inequalities)
+            callback = _ProgressCallback(self.n_variables, g.numel(), lbg, ubg, None)
+            opts["iteration_callback"] = callback
             solver = ca.nlpsol("sphere_nlp", "ipopt", {"x": self._x, "f": self._f, "g": g}, opts)
             self._solvers[key] = (solver, callback)
         return self._solvers[key]
 
     def solve(self, x0, inequalities=False, lam_g0=None, lam_x0=None, options=None, progress=None,
-              excess_bounds=None, log_u_lower=None):
+              excess_bounds=None, log_u_lower=None, abort_violation=None, abort_iterations=25):
         """Run IPOPT from x0.
 
         Parameters
@@ -422,16 +439,21 @@ class AngleNLP:
         log_u_lower : (3t,) array, optional
             log-chord with ``inequalities=True`` only: lower bounds on log u per corner, instead of
             ``log(angle_margin)`` everywhere.
+        abort_violation : float, optional
+            Stop the run (status "Diverged") once the max constraint violation has stayed above
+            this for ``abort_iterations`` iterations in a row: a run that has left the solution set
+            that far rarely comes back and would otherwise spend its whole time limit.
+        abort_iterations : int
 
         Returns
         -------
         dict with x, lam_g, lam_x, status, success, iterations, objective, time_s, build_s
         """
         start = time.perf_counter()
-        solver, callback = self._solver(inequalities, options or {}, progress)
+        solver, callback = self._solver(inequalities, options or {})
         build_s = time.perf_counter() - start
-        if callback is not None:
-            callback.iteration, callback.start = 0, time.perf_counter()
+        callback._report = progress
+        callback.reset(abort_violation, abort_iterations)
         lbx, ubx, lbg, ubg = self._bounds(inequalities, excess_bounds, log_u_lower)
         args = dict(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
         if lam_g0 is not None:
@@ -444,6 +466,8 @@ class AngleNLP:
         out = solver(**args)
         stats = solver.stats()
         status = stats.get("return_status", "unknown")
+        if callback.aborted:
+            status = "Diverged"
         return {
             "x": np.asarray(out["x"]).ravel(),
             "lam_g": np.asarray(out["lam_g"]).ravel(),

@@ -106,6 +106,12 @@ FEASIBILITY_TOLERANCE = 1e-8
 # pi, say), which the penalty stages cannot repair from there; runs that merely stop short end
 # far below it (hand_closed.obj equal-angles: 2.5e-3 before the penalty stages).
 DIVERGED_VIOLATION = 0.1
+# ... and a log-chord run is stopped once its violation has stayed above this for
+# ABORT_ITERATIONS iterations in a row: none came back from there, and each spent its whole time
+# limit (armadillo_remeshed.obj original-areas sat at violation pi, a vertex sum off by pi, for
+# 30 minutes; hand_closed.obj original-areas at 5.5 for 10).
+ABORT_VIOLATION = 1.0
+ABORT_ITERATIONS = 25
 
 
 @dataclass
@@ -412,6 +418,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                 run = nlp.solve(x, inequalities=inequalities, options=run_options,
                                 progress=stage_progress(name),
                                 excess_bounds=(log_e - window, log_e + window), log_u_lower=log_u_lower,
+                                abort_violation=ABORT_VIOLATION, abort_iterations=ABORT_ITERATIONS,
                                 **warm)
                 stages.append(_stage_record(name if round_ == 0 else "%s-recentred" % name, run))
                 moved = np.max(np.abs(run["x"][3 * t:] - log_e), initial=0.0)
@@ -459,7 +466,11 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                 # result however far its corners are below the margin (they keep their own size,
                 # less 10%, as bound; see margin_restart).
                 max_lift = MAX_MARGIN_LIFT if direct is None else np.inf
-                restart, log_u_lower = margin_restart(run["x"], x_start, t, nlp.angle_margin, max_lift)
+                # A diverged equality result is no start either (its corners can look fine); after
+                # a diverged direct run the fall-back start is the feasible start, not x_start.
+                fallback = x_start if direct is None else x0
+                x_equality = fallback if _diverged(connectivity, nlp, run["x"]) else run["x"]
+                restart, log_u_lower = margin_restart(x_equality, fallback, t, nlp.angle_margin, max_lift)
                 run = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
                 with_margin = True
         penalty = DROPPED_PENALTY
@@ -581,10 +592,11 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
         tau = step / n_steps
         excess = np.exp((1 - tau) * start_log + tau * target_log)
         nlp = nlp_for(replace(targets, excess=excess * (4 * np.pi / excess.sum())))
-        run = nlp.solve(x, options=capped, progress=progress)
+        run = nlp.solve(x, options=capped, progress=progress, abort_violation=ABORT_VIOLATION,
+                        abort_iterations=ABORT_ITERATIONS)
         if stages is not None:
             stages.append(_stage_record("area-continuation-%d/%d" % (step, n_steps), run))
-        if not np.isfinite(run["x"]).all():
+        if not np.isfinite(run["x"]).all() or run["status"] == "Diverged":
             break
         x = run["x"]
     return x

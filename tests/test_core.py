@@ -299,7 +299,7 @@ def test_area_mode_falls_back_to_the_equality_stage_when_the_direct_margin_stage
     r = sphere_nlp.parameterize((V, F), target="original-areas")
     names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
     assert names[0] == "margin" and "equality" in names[1:]
-    assert verdicts == [False]                    # the real check passed that run: no false alarm
+    assert verdicts[0] is False                   # the real check passed that run: no false alarm
     assert r.certificate.valid and r.max_constraint_violation <= 1e-8
 
 
@@ -319,3 +319,26 @@ def test_diverged_flags_non_finite_or_far_infeasible_points_only():
     x_off[0] += 1.0                     # one corner e times larger: a vertex sum off by far more than 0.1
     assert solve._diverged(c, nlp, x_off)
     assert solve._diverged(c, nlp, np.full_like(x, np.nan))
+
+
+def test_a_run_that_stays_infeasible_is_stopped_as_diverged():
+    # The divergence watch in the iteration callback: with a threshold no iterate can meet, the run
+    # stops after exactly abort_iterations iterations; the same cached solver without it converges.
+    from sphere_nlp import solve
+    from sphere_nlp.nlp import AngleNLP
+    from sphere_nlp.targets import make_targets
+
+    V, F = ellipsoid(1)
+    c = build_connectivity(F, len(V))
+    targets = make_targets("original-angles", V, F, c.vertex_degree)
+    angles, excess, _, _ = solve.feasible_start(c, V)
+    nlp = AngleNLP(c, targets)
+    x = nlp.pack(angles, excess)
+    x[:5] += 0.3                                  # infeasible: the first iterates violate (7)-(8)
+    seen = []
+    run = nlp.solve(x, options=solve.DEFAULT_IPOPT_OPTIONS, abort_violation=1e-300, abort_iterations=3,
+                    progress=lambda it, f, viol, elapsed: seen.append(viol))
+    assert run["status"] == "Diverged" and not run["success"]
+    assert len(seen) == 3 and min(seen) > 1e-300
+    run = nlp.solve(x, options=solve.DEFAULT_IPOPT_OPTIONS)
+    assert run["success"] and solve.max_constraint_violation(c, *nlp.unpack(run["x"])) < 1e-8
