@@ -420,7 +420,7 @@ class AngleNLP:
         return self._solvers[key]
 
     def solve(self, x0, inequalities=False, lam_g0=None, lam_x0=None, options=None, progress=None,
-              excess_bounds=None, log_u_lower=None, abort_violation=None, abort_iterations=25):
+              excess_bounds=None, log_u_lower=None, abort_violation=None, abort_iterations=50):
         """Run IPOPT from x0.
 
         Parameters

@@ -109,9 +109,11 @@ DIVERGED_VIOLATION = 0.1
 # ... and a log-chord run is stopped once its violation has stayed above this for
 # ABORT_ITERATIONS iterations in a row: none came back from there, and each spent its whole time
 # limit (armadillo_remeshed.obj original-areas sat at violation pi, a vertex sum off by pi, for
-# 30 minutes; hand_closed.obj original-areas at 5.5 for 10).
+# 30 minutes; hand_closed.obj original-areas at 5.5 for 10). Runs that succeed can pass 1 briefly
+# (armadillo_remeshed.obj original-areas, the certified margin stage: 1.71 at iteration 360, below
+# 0.3 ten iterations later), hence the long count.
 ABORT_VIOLATION = 1.0
-ABORT_ITERATIONS = 25
+ABORT_ITERATIONS = 50
 
 
 @dataclass
