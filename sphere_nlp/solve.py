@@ -458,7 +458,8 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             # margin stage then needed 433 more; now 38 + 64 in all).
             run = windowed_solve(x_start, "equality", recentre=False)
             with_margin, log_u_lower = False, None
-            if (not run["success"] or run["touched"]
+            equality_diverged = _diverged(connectivity, nlp, run["x"])
+            if (not run["success"] or run["touched"] or equality_diverged
                     or not np.min(run["x"][:3 * t]) > np.log(nlp.angle_margin)):
                 # As the paper adds its inequalities only when needed: the optimum lies at (or
                 # the solver ran into) a degenerate triangle, or further than the window, so
@@ -471,7 +472,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                 # A diverged equality result is no start either (its corners can look fine); after
                 # a diverged direct run the fall-back start is the feasible start, not x_start.
                 fallback = x_start if direct is None else x0
-                x_equality = fallback if _diverged(connectivity, nlp, run["x"]) else run["x"]
+                x_equality = fallback if equality_diverged else run["x"]
                 restart, log_u_lower = margin_restart(x_equality, fallback, t, nlp.angle_margin, max_lift)
                 run = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
                 with_margin = True

@@ -303,6 +303,33 @@ def test_area_mode_falls_back_to_the_equality_stage_when_the_direct_margin_stage
     assert r.certificate.valid and r.max_constraint_violation <= 1e-8
 
 
+def test_after_two_diverged_runs_the_margin_stage_starts_from_the_feasible_start(monkeypatch):
+    # If the equality stage of the fall-back diverges too, neither its result nor the continuation's
+    # end (the diverged direct run's start) may be the margin stage's start.
+    from sphere_nlp import solve
+
+    calls, starts = [], []
+    monkeypatch.setattr(solve, "_diverged", lambda connectivity, nlp, x: calls.append(1) or len(calls) <= 2)
+    real_restart = solve.margin_restart
+
+    def recording_restart(x_equality, x_start, *args, **kw):
+        starts.append((x_equality.copy(), x_start.copy()))
+        return real_restart(x_equality, x_start, *args, **kw)
+
+    monkeypatch.setattr(solve, "margin_restart", recording_restart)
+    V, F = ellipsoid(2, axes=(1.0, 2.0, 0.7))
+    r = sphere_nlp.parameterize((V, F), target="original-areas")
+    names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
+    assert names[:3] == ["margin", "equality", "margin"]
+    (_, continuation_end), (x_equality, fallback) = starts
+    c = build_connectivity(F, len(V))
+    angles, excess, _, _ = solve.feasible_start(c, V, gauge="area")
+    x0 = np.concatenate([np.log(angles - excess[:, None] / 2).ravel(), np.log(excess)])
+    assert np.allclose(fallback, x0) and np.allclose(x_equality, x0)
+    assert not np.allclose(continuation_end, x0)
+    assert r.certificate.valid and r.max_constraint_violation <= 1e-8
+
+
 def test_diverged_flags_non_finite_or_far_infeasible_points_only():
     from sphere_nlp import solve
     from sphere_nlp.nlp import AngleNLP
