@@ -330,17 +330,22 @@ def test_after_two_diverged_runs_the_margin_stage_starts_from_the_feasible_start
     assert r.certificate.valid and r.max_constraint_violation <= 1e-8
 
 
-def test_diverged_flags_non_finite_or_far_infeasible_points_only():
+def _small_log_chord_problem():
+    """Connectivity, log-chord NLP (original angles) and its feasible start on a small ellipsoid."""
     from sphere_nlp import solve
-    from sphere_nlp.nlp import AngleNLP
-    from sphere_nlp.targets import make_targets
 
     V, F = ellipsoid(1)
     c = build_connectivity(F, len(V))
     targets = make_targets("original-angles", V, F, c.vertex_degree)
     angles, excess, _, _ = solve.feasible_start(c, V)
     nlp = AngleNLP(c, targets)
-    x = nlp.pack(angles, excess)
+    return c, nlp, nlp.pack(angles, excess)
+
+
+def test_diverged_flags_non_finite_or_far_infeasible_points_only():
+    from sphere_nlp import solve
+
+    c, nlp, x = _small_log_chord_problem()
     assert not solve._diverged(c, nlp, x)
     x_off = x.copy()
     x_off[0] += 1.0                     # one corner e times larger: a vertex sum off by far more than 0.1
@@ -352,15 +357,8 @@ def test_a_run_that_stays_infeasible_is_stopped_as_diverged():
     # The divergence watch in the iteration callback: with a threshold no iterate can meet, the run
     # stops after exactly abort_iterations iterations; the same cached solver without it converges.
     from sphere_nlp import solve
-    from sphere_nlp.nlp import AngleNLP
-    from sphere_nlp.targets import make_targets
 
-    V, F = ellipsoid(1)
-    c = build_connectivity(F, len(V))
-    targets = make_targets("original-angles", V, F, c.vertex_degree)
-    angles, excess, _, _ = solve.feasible_start(c, V)
-    nlp = AngleNLP(c, targets)
-    x = nlp.pack(angles, excess)
+    c, nlp, x = _small_log_chord_problem()
     x[:5] += 0.3                                  # infeasible: the first iterates violate (7)-(8)
     seen = []
     run = nlp.solve(x, options=solve.DEFAULT_IPOPT_OPTIONS, abort_violation=1e-300, abort_iterations=3,
