@@ -118,7 +118,7 @@ DIVERGED_VIOLATION = 0.1
 # ... and a log-chord run is stopped once its violation has stayed above this for
 # ABORT_ITERATIONS iterations in a row: none came back from there, and each spent its whole time
 # limit (armadillo_remeshed.obj original-areas sat at violation pi, a vertex sum off by pi, for
-# 30 minutes; hand_closed.obj original-areas at 5.5 for 10). Runs that succeed can pass 1 briefly
+# 30 minutes; hand_closed.obj original-areas at 5.5 for 10 minutes). Runs that succeed can pass 1 briefly
 # (armadillo_remeshed.obj original-areas, the certified margin stage: 1.71 at iteration 360, below
 # 0.3 ten iterations later), hence the long count.
 ABORT_VIOLATION = 1.0
@@ -135,7 +135,8 @@ class AngleSolution:
     excess : (t,) array
     success : bool
     status : str
-        IPOPT's return status of the last stage.
+        IPOPT's return status of the last stage, or "Diverged" if the divergence watch stopped it
+        (see :data:`ABORT_VIOLATION`).
     iterations : int
         IPOPT iterations over all stages.
     objective : float
@@ -606,11 +607,10 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
         tau = step / n_steps
         excess = np.exp((1 - tau) * start_log + tau * target_log)
         nlp = nlp_for(replace(targets, excess=excess * (4 * np.pi / excess.sum())))
-        run = nlp.solve(x, options=capped, progress=progress, abort_violation=ABORT_VIOLATION,
-                        abort_iterations=ABORT_ITERATIONS)
+        run = nlp.solve(x, options=capped, progress=progress)
         if stages is not None:
             stages.append(_stage_record("area-continuation-%d/%d" % (step, n_steps), run))
-        if not np.isfinite(run["x"]).all() or run["status"] == "Diverged":
+        if not np.isfinite(run["x"]).all():
             break
         x = run["x"]
     return x
