@@ -77,15 +77,16 @@ class _ProgressCallback(ca.Callback):
     :meth:`AngleNLP.solve`); IPOPT then ends with User_Requested_Stop at that iterate.
     """
 
-    def __init__(self, n_x, n_g, lbg, ubg, report):
+    def __init__(self, n_x, n_g, lbg, ubg):
         ca.Callback.__init__(self)
         self._n_x, self._n_g = n_x, n_g
         self._lbg, self._ubg = lbg, ubg
-        self._report = report
-        self.reset(None, 0)
+        self.reset(None, None, 0)
         self.construct("sphere_nlp_progress", {})
 
-    def reset(self, abort_violation, abort_iterations):
+    def reset(self, report, abort_violation, abort_iterations):
+        """Start a run: report to ``report`` (or nobody), watch for divergence if abort_violation."""
+        self._report = report
         self.iteration = 0
         self.start = time.perf_counter()
         self.abort_violation, self.abort_iterations = abort_violation, abort_iterations
@@ -413,7 +414,7 @@ class AngleNLP:
             if not inequalities or self.n_inequalities == 0:
                 opts.update(self._derivatives)     # exact derivatives built in linear time
             _, _, lbg, ubg = self._bounds(inequalities)
-            callback = _ProgressCallback(self.n_variables, g.numel(), lbg, ubg, None)
+            callback = _ProgressCallback(self.n_variables, g.numel(), lbg, ubg)
             opts["iteration_callback"] = callback
             solver = ca.nlpsol("sphere_nlp", "ipopt", {"x": self._x, "f": self._f, "g": g}, opts)
             self._solvers[key] = (solver, callback)
@@ -452,8 +453,7 @@ class AngleNLP:
         start = time.perf_counter()
         solver, callback = self._solver(inequalities, options or {})
         build_s = time.perf_counter() - start
-        callback._report = progress
-        callback.reset(abort_violation, abort_iterations)
+        callback.reset(progress, abort_violation, abort_iterations)
         lbx, ubx, lbg, ubg = self._bounds(inequalities, excess_bounds, log_u_lower)
         args = dict(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
         if lam_g0 is not None:

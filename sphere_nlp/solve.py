@@ -475,17 +475,15 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                     or not np.min(run["x"][:3 * t]) > np.log(nlp.angle_margin)):
                 # As the paper adds its inequalities only when needed: the optimum lies at (or
                 # the solver ran into) a degenerate triangle, or further than the window, so
-                # solve again with u >= angle_margin, from the equality result if it is usable,
-                # else from the feasible start.
-                # After a diverged direct run, x_start is known to fail: start from the equality
-                # result however far its corners are below the margin (they keep their own size,
-                # less 10%, as bound; see margin_restart).
+                # solve again with u >= angle_margin, from the equality result if it is usable
+                # (not diverged; its corners can look fine even then), else from the feasible
+                # start x0. (In the angle modes x_start is x0; after a diverged direct run the
+                # continuation's end is known to fail.) After a diverged direct run the equality
+                # result is used however far its corners are below the margin: they keep their
+                # own size, less 10%, as bound (see margin_restart).
                 max_lift = MAX_MARGIN_LIFT if direct is None else np.inf
-                # A diverged equality result is no start either (its corners can look fine); after
-                # a diverged direct run the fall-back start is the feasible start, not x_start.
-                fallback = x_start if direct is None else x0
-                x_equality = fallback if equality_diverged else run["x"]
-                restart, log_u_lower = margin_restart(x_equality, fallback, t, nlp.angle_margin, max_lift)
+                x_equality = x0 if equality_diverged else run["x"]
+                restart, log_u_lower = margin_restart(x_equality, x0, t, nlp.angle_margin, max_lift)
                 run = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
                 with_margin = True
         penalty = DROPPED_PENALTY

@@ -324,7 +324,7 @@ def test_after_two_diverged_runs_the_margin_stage_starts_from_the_feasible_start
     (_, continuation_end), (x_equality, fallback) = starts
     c = build_connectivity(F, len(V))
     angles, excess, _, _ = solve.feasible_start(c, V, gauge="area")
-    x0 = np.concatenate([np.log(angles - excess[:, None] / 2).ravel(), np.log(excess)])
+    x0 = AngleNLP(c, make_targets("original-areas", V, F, c.vertex_degree)).pack(angles, excess)
     assert np.allclose(fallback, x0) and np.allclose(x_equality, x0)
     assert not np.allclose(continuation_end, x0)
     assert r.certificate.valid and r.max_constraint_violation <= 1e-8
