@@ -163,7 +163,8 @@ class AngleNLP:
     """
 
     def __init__(self, connectivity, targets, formulation=DEFAULT_FORMULATION, dropped_vertices=(),
-                 angle_margin=1e-4, dropped_penalty=DROPPED_PENALTY, area_form="linear"):
+                 angle_margin=1e-4, dropped_penalty=DROPPED_PENALTY, area_form="linear",
+                 obtuse_corners=None):
         if formulation not in FORMULATIONS:
             raise ValueError("unknown formulation %r; choose one of %s" % (formulation, FORMULATIONS))
         if area_form not in ("linear", "log"):
@@ -177,8 +178,13 @@ class AngleNLP:
         self._derivatives = {}
         kept_vertices = np.setdiff1d(np.arange(connectivity.n_vertices), dropped_vertices)
         if formulation == "log-chord":
+            if obtuse_corners is None:
+                obtuse_corners = np.zeros((t, 3), dtype=bool)
+            obtuse_corners = np.asarray(obtuse_corners, dtype=bool)
+            if obtuse_corners.shape != (t, 3):
+                raise ValueError("obtuse_corners must be a (t, 3) boolean array")
             x, objective, g_eq, self._derivatives = self._build_log_chord(
-                connectivity, targets, kept_vertices, dropped_penalty, area_form)
+                connectivity, targets, kept_vertices, dropped_penalty, area_form, obtuse_corners)
             g_ineq = ca.MX(0, 1)             # (3)-(5) hold by construction (see the module docstring)
         else:
             x, objective, g_eq, g_ineq = self._build_paper_form(connectivity, targets, formulation,
@@ -234,7 +240,8 @@ class AngleNLP:
         return x, objective, g_eq, g_ineq
 
     @staticmethod
-    def _build_log_chord(connectivity, targets, kept_vertices, dropped_penalty=0.0, area_form="linear"):
+    def _build_log_chord(connectivity, targets, kept_vertices, dropped_penalty=0.0, area_form="linear",
+                         obtuse_corners=None):
         """The log-chord form as g = A h(z) - b, with h one small function mapped over triangles.
 
         Every term of the objective and of (6)-(8) depends on one triangle's unknowns
@@ -260,31 +267,40 @@ class AngleNLP:
         beta = ca.SX.sym("beta", 3)
         excess_target = ca.SX.sym("excess_target")
         weights = ca.SX.sym("w", width)
+        obtuse = ca.SX.sym("obtuse", 3)                  # 1 at a corner flagged obtuse, else 0
         u, e = ca.exp(z[:3]), ca.exp(z[3])
         alpha = u + e / 2
         # Half-angle cosine rule: sin^2(a_j/2) = sin(e/2) sin(alpha_j - e/2) / (sin alpha_k sin alpha_l).
-        # (Writing sin alpha_l as sin(u_j + u_k), equal under (6), gave bunny equal-angles 36
-        # iterations instead of 23.)
-        log_half_chords = [ca.log(ca.sin(e / 2)) + ca.log(ca.sin(u[j])) - ca.log(ca.sin(alpha[(j + 1) % 3]))
-                           - ca.log(ca.sin(alpha[(j + 2) % 3])) for j in range(3)]
+        # Near alpha = pi, sin alpha and sin u are differences from pi of large unknowns, and their
+        # logs swing wildly under small steps in log u (nefertiti.obj original-angles: the worst
+        # constraints were always the three edges of a 177-179.3 deg sliver, violated by up to 1.1).
+        # At corners flagged obtuse they are written instead as sines of the other corners' small
+        # sums, equal to them under (6): sin alpha_j = sin(u_k + u_l), sin u_j = sin(u_k + u_l + e/2).
+        # (Doing that at every corner gave bunny equal-angles 36 iterations instead of 23.)
+        others = [u[(j + 1) % 3] + u[(j + 2) % 3] for j in range(3)]
+        sin_alpha = [(1 - obtuse[j]) * ca.sin(alpha[j]) + obtuse[j] * ca.sin(others[j]) for j in range(3)]
+        sin_u = [(1 - obtuse[j]) * ca.sin(u[j]) + obtuse[j] * ca.sin(others[j] + e / 2) for j in range(3)]
+        log_half_chords = [ca.log(ca.sin(e / 2)) + ca.log(sin_u[j]) - ca.log(sin_alpha[(j + 1) % 3])
+                           - ca.log(sin_alpha[(j + 2) % 3]) for j in range(3)]
         if area_form == "log":
             area_term = (z[3] - ca.log(excess_target)) ** 2
         else:
             area_term = ((e - excess_target) / targets.excess_scale) ** 2
         term = targets.angle_weight * ca.sumsqr(alpha - beta) + targets.area_weight * area_term
         h_sx = ca.vertcat(term, ca.sum1(u) + e / 2 - np.pi, alpha, *log_half_chords)
-        triangle = ca.Function("sphere_nlp_triangle", [z, beta, excess_target], [h_sx])
-        triangle_jacobian = ca.Function("sphere_nlp_triangle_jac", [z, beta, excess_target],
+        triangle = ca.Function("sphere_nlp_triangle", [z, beta, excess_target, obtuse], [h_sx])
+        triangle_jacobian = ca.Function("sphere_nlp_triangle_jac", [z, beta, excess_target, obtuse],
                                         [ca.vec(ca.densify(ca.jacobian(h_sx, z)))])
         hessian_4x4 = ca.densify(ca.hessian(ca.dot(weights, h_sx), z)[0])
         upper = [(i, j) for j in range(4) for i in range(j + 1)]          # column-major upper triangle
-        triangle_hessian = ca.Function("sphere_nlp_triangle_hess", [z, beta, excess_target, weights],
+        triangle_hessian = ca.Function("sphere_nlp_triangle_hess", [z, beta, excess_target, obtuse, weights],
                                        [ca.vertcat(*[hessian_4x4[i, j] for i, j in upper])])
 
         x = ca.MX.sym("x", 4 * t)
         Z = ca.vertcat(ca.reshape(x[:3 * t], 3, t), ca.reshape(x[3 * t:], 1, t))
         beta_dm, excess_dm = ca.DM(targets.angles.T), ca.DM(targets.excess.reshape(1, -1))
-        h = ca.reshape(triangle.map(t)(Z, beta_dm, excess_dm), width * t, 1)
+        obtuse_dm = ca.DM(np.asarray(obtuse_corners, dtype=float).T)
+        h = ca.reshape(triangle.map(t)(Z, beta_dm, excess_dm, obtuse_dm), width * t, 1)
         # A picks and combines entries of h (rows 8i..8i+7 hold triangle i's values).
         corner = np.arange(3 * t)
         alpha_row = 2 + corner % 3 + width * (corner // 3)
@@ -329,7 +345,7 @@ class AngleNLP:
         # Order of the mapped output: triangle, then column c, then row r (vec of 8x4 is column-major).
         d_rows = (width * tri[:, None] + r_idx.T.ravel()[None, :]).ravel()
         d_cols = variable_of[:, c_idx.T.ravel()].ravel()
-        D = _mx_from_triplets(d_rows, d_cols, ca.vec(triangle_jacobian.map(t)(Z, beta_dm, excess_dm)),
+        D = _mx_from_triplets(d_rows, d_cols, ca.vec(triangle_jacobian.map(t)(Z, beta_dm, excess_dm, obtuse_dm)),
                               width * t, 4 * t)
         h_sym = [x, ca.MX.sym("p", 0, 1)]
         lam_f = ca.MX.sym("lam_f")
@@ -344,7 +360,7 @@ class AngleNLP:
         hu_rows = np.array([i for i, _ in upper])
         hu_cols = np.array([j for _, j in upper])
         H = _mx_from_triplets(variable_of[:, hu_rows].ravel(), variable_of[:, hu_cols].ravel(),
-                              ca.vec(triangle_hessian.map(t)(Z, beta_dm, excess_dm, W)), 4 * t, 4 * t)
+                              ca.vec(triangle_hessian.map(t)(Z, beta_dm, excess_dm, obtuse_dm, W)), 4 * t, 4 * t)
         if P is not None:
             PD = ca.mtimes(P, D)
             H = H + ca.triu(2 * dropped_penalty * lam_f * ca.mtimes(PD.T, PD))

@@ -124,6 +124,9 @@ DIVERGED_VIOLATION = 0.1
 ABORT_VIOLATION = 1.0
 ABORT_ITERATIONS = 50
 
+# Corners above this angle at the start use the obtuse form of the edge constraints (AngleNLP).
+OBTUSE_ANGLE = np.pi / 2
+
 
 @dataclass
 class AngleSolution:
@@ -409,7 +412,9 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                                                                                gauge)
     if formulation == "log-chord":
         dropped = independent_vertices(start_positions) if start != "linear" else []
-        nlp = AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped)
+        # Corners obtuse at the start get the well-conditioned form of (8) near pi (AngleNLP).
+        obtuse = init_angles > OBTUSE_ANGLE
+        nlp = AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped, obtuse_corners=obtuse)
         t = connectivity.n_faces
         x0 = nlp.pack(init_angles, init_excess)
 
@@ -447,7 +452,8 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         if targets.area_weight > 0:
             x_start = area_continuation(nlp_for=lambda tg: AngleNLP(connectivity, tg, formulation,
                                                                     dropped_vertices=dropped,
-                                                                    area_form="log"),
+                                                                    area_form="log",
+                                                                    obtuse_corners=obtuse),
                                         targets=targets, x0=x0, n_faces=t, options=options,
                                         progress=stage_progress("area-continuation"), stages=stages)
         with_margin, log_u_lower, direct = False, None, None
@@ -496,13 +502,13 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             # all-constraints solve below had not finished in 15 minutes).
             penalty *= 100
             nlp = AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped,
-                           dropped_penalty=penalty)
+                           dropped_penalty=penalty, obtuse_corners=obtuse)
             run = windowed_solve(run["x"], "penalty-%.0e" % penalty, inequalities=with_margin,
                                  log_u_lower=log_u_lower)
             violation = max_constraint_violation(connectivity, *nlp.unpack(run["x"]))
         if violation > FEASIBILITY_TOLERANCE:
             # Last resort: every constraint (a singular Jacobian at the solution, so slow).
-            nlp = AngleNLP(connectivity, targets, formulation)
+            nlp = AngleNLP(connectivity, targets, formulation, obtuse_corners=obtuse)
             run = windowed_solve(x_start, "all-constraints")
         angles, excess = nlp.unpack(run["x"])
         return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess, start_kind)

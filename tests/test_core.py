@@ -63,17 +63,18 @@ def test_jacobian_matches_finite_differences(formulation):
 
 
 
-@pytest.mark.parametrize("dropped", [[], [0, 5, 11]])
-def test_structured_derivatives_match_casadi_ad(dropped):
+@pytest.mark.parametrize("dropped, with_obtuse", [([], False), ([0, 5, 11], False), ([0, 5, 11], True)])
+def test_structured_derivatives_match_casadi_ad(dropped, with_obtuse):
     # The log-chord form hands IPOPT hand-assembled exact derivatives (linear-time build); they
     # must equal CasADi's automatic differentiation of the same objective and constraints.
     import casadi as ca
 
     V, F = ellipsoid(1)
     c = build_connectivity(F, len(V))
-    nlp = AngleNLP(c, make_targets("original-areas", V, F, c.vertex_degree), "log-chord",
-                   dropped_vertices=dropped)
     rng = np.random.default_rng(2)
+    obtuse = rng.random((c.n_faces, 3)) < 0.3 if with_obtuse else None
+    nlp = AngleNLP(c, make_targets("original-areas", V, F, c.vertex_degree), "log-chord",
+                   dropped_vertices=dropped, obtuse_corners=obtuse)
     angles = np.full((c.n_faces, 3), np.pi / 3) + 0.1 * rng.random((c.n_faces, 3))
     x = nlp.pack(angles, angles.sum(1) - np.pi + 0.02)
     lam_f, lam_g = 0.7, rng.standard_normal(nlp.n_equalities)
@@ -89,6 +90,29 @@ def test_structured_derivatives_match_casadi_ad(dropped):
     np.testing.assert_allclose(jac, jac_ad, rtol=1e-10, atol=1e-10)
     assert np.allclose(np.tril(hess_upper, -1), 0)
     np.testing.assert_allclose(np.triu(hess_upper), np.triu(hess_ad), rtol=1e-9, atol=1e-9)
+
+def test_obtuse_form_of_the_edge_constraints_is_exact_on_valid_triangulations():
+    # At corners flagged obtuse the log-chord form writes sin(alpha) and sin(u) through the other
+    # two corners, using (6); on any valid spherical triangulation both forms must agree, also for
+    # corners near pi, where the obtuse form is the accurate one.
+    V, F = ellipsoid(2)
+    c = build_connectivity(F, len(V))
+    P = V / np.linalg.norm(V, axis=1, keepdims=True)
+    a, b, d = F[0]
+    P[a] += 0.99 * ((P[b] + P[d]) / 2 - P[a])         # next to edge bd: a corner of nearly pi
+    P /= np.linalg.norm(P, axis=1, keepdims=True)
+    angles, excess = spherical_angles(P, F), signed_solid_angles(P, F)
+    assert (excess > 0).all() and angles.max() > np.radians(170)
+    targets = make_targets("original-angles", V, F, c.vertex_degree)
+    plain = AngleNLP(c, targets, "log-chord")
+    flagged = AngleNLP(c, targets, "log-chord", obtuse_corners=angles > np.pi / 2)
+    x = plain.pack(angles, excess)
+    f_plain, g_plain = plain.evaluate(x)
+    f_flagged, g_flagged = flagged.evaluate(x)
+    assert abs(f_plain - f_flagged) < 1e-12
+    np.testing.assert_allclose(g_flagged, g_plain, atol=1e-9)
+    assert np.abs(g_flagged).max() < 1e-9
+
 
 def test_half_chord_formula_matches_cosine_rule():
     rng = np.random.default_rng(2)
