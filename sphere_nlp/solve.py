@@ -264,12 +264,13 @@ START_POINTS = ("auto", "conformal", "embedding", "linear")
 # Mobius normalisation of the angle modes' start (see starting_positions). "excess" moves the start
 # to the optimum's normalisation: nefertiti.obj's first run spent 150 s (55 iterations, not
 # converged) moving 78% of the log excesses by > 1 along a nearly flat Mobius direction (a dipole of
-# size 2.1); from the "excess" start it reached the same objective in 44 iterations. But it is not
-# the default: cheburashka 94 -> 274 iterations, max_planck 102 -> 122 (bunny 14 -> 11, brain
-# 10 -> 9, knight 80 -> 68, spot 12 -> 12), and nefertiti's equality stage then stalls (its caps
-# collapse towards u = 0; see the margin stage) where from the "area" start it certifies in 227
-# iterations (equality 66, margin 89 + 72; objective 207.1331 vs 207.1350 at the stall).
-START_GAUGE = "area"
+# size 2.1). It was not the default while the edge constraints of obtuse corners were ill-conditioned
+# (cheburashka 94 -> 274 iterations, max_planck 102 -> 122, nefertiti's equality stage stalled);
+# with their obtuse form (AngleNLP), against the "area" gauge: nefertiti 93 -> 69 iterations (same
+# objective 207.133106), elephant 24 -> 10, hand 14 -> 9, armadillo_remeshed 14 -> 9, brain 11 -> 9,
+# bunny 13 -> 10, knight 83 -> 80, max_planck 37 -> 35, spot 12 -> 12, cheburashka 72 -> 80; equal-angles
+# spot and bunny 53 -> 44, armadillo_remeshed 25 -> 13; armadillo.obj 15 -> 11. The area modes keep the area gauge (their continuation sets the scale).
+START_GAUGE = "excess"
 
 
 def starting_positions(connectivity, vertices=None, kind="auto", gauge="area"):
