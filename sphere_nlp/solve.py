@@ -84,8 +84,14 @@ WARM_START_OPTIONS = {
 
 
 # Trust region of the log-chord solve: each IPOPT run keeps every log e within this of where it
-# started (a factor e^2.5 ~ 12 in area), re-centred up to MAX_WINDOW_ROUNDS times if it ends on it.
-EXCESS_WINDOW = 2.5
+# started (a factor e^5 ~ 150 in area), re-centred up to MAX_WINDOW_ROUNDS times if it ends on it.
+# 2.5 was needed before the obtuse form of (8) and the excess gauge; with them, 5 against 2.5
+# (iterations): nefertiti 57 -> 35, knight 76 -> 47, cheburashka 78 -> 63, spot equal-angles
+# 39 -> 26, bunny equal-angles 40 -> 23, brain equal-angles 48 -> 34, armadillo_remeshed
+# equal-angles 13 -> 9, hand 9 -> 7, max_planck 34 -> 47, armadillo.obj 11 -> 11, all to the same
+# optima; the area modes' six small rows 967 -> 970 in all. (10: spot, bunny, hand fewer still,
+# knight, cheburashka, brain more: 264 on those six against 240.)
+EXCESS_WINDOW = 5.0
 MAX_WINDOW_ROUNDS = 6
 # Each re-centred run widens the window by this factor and is warm-started (multipliers kept, small
 # barrier): a cold restart spent 50-60 iterations re-converging where the last run ended, and the
@@ -419,14 +425,19 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         t = connectivity.n_faces
         x0 = nlp.pack(init_angles, init_excess)
 
-        def windowed_solve(x_start, name, inequalities=False, recentre=True, log_u_lower=None):
+        def obtuse_at(x):
+            return nlp.unpack(x)[0] > OBTUSE_ANGLE
+
+        def windowed_solve(x_start, name, inequalities=False, recentre=True, log_u_lower=None,
+                           warm_from=None):
             # Bounds log e within EXCESS_WINDOW of the current point act as a trust region: when most
             # triangles are tiny, scaling all their excesses together barely changes (6)-(8) and, in
             # the angle modes, not the objective either, so IPOPT took huge steps along that flat
             # direction (armadillo.obj, 43k vertices: diverged; with the window 17 iterations). The
             # barrier terms also convexify it. If the result touches the window, re-centre and repeat
-            # (if recentre), else report it as touched (run["touched"]).
-            x, window, previous = x_start, EXCESS_WINDOW, None
+            # (if recentre), else report it as touched (run["touched"]). warm_from: an earlier run
+            # with the same equality constraints whose multipliers start this one.
+            x, window, previous = x_start, EXCESS_WINDOW, warm_from
             for round_ in range(MAX_WINDOW_ROUNDS):
                 log_e = x[3 * t:]
                 run_options, warm = options, {}
@@ -451,12 +462,17 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
 
         x_start = x0
         if targets.area_weight > 0:
-            x_start = area_continuation(nlp_for=lambda tg: AngleNLP(connectivity, tg, formulation,
-                                                                    dropped_vertices=dropped,
-                                                                    area_form="log",
-                                                                    obtuse_corners=obtuse),
+            # Each step, and the stages after the walk, flag the corners obtuse at their own start:
+            # the areas reshape the triangles.
+            x_start = area_continuation(nlp_for=lambda tg, x: AngleNLP(connectivity, tg, formulation,
+                                                                       dropped_vertices=dropped,
+                                                                       area_form="log",
+                                                                       obtuse_corners=obtuse_at(x)),
                                         targets=targets, x0=x0, n_faces=t, options=options,
                                         progress=stage_progress("area-continuation"), stages=stages)
+            obtuse = obtuse_at(x_start)
+            nlp = AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped,
+                           obtuse_corners=obtuse)
         with_margin, log_u_lower, direct = False, None, None
         if targets.area_weight > 0:
             # Area modes go straight to the margin stage: their optimum is nearly always at a
@@ -464,7 +480,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             # hundreds of iterations before the margin stage starts again anyway
             # (armadillo_remeshed.obj equal-areas: 667 equality + 627 margin iterations, now 638;
             # knight.off original-areas 1,443 iterations in all, now 188).
-            restart, log_u_lower = margin_restart(x_start, x_start, t, nlp.angle_margin)
+            restart, log_u_lower, _ = margin_restart(x_start, x_start, t, nlp.angle_margin)
             direct = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
             run, with_margin = direct, True
         if direct is None or _diverged(connectivity, nlp, direct["x"]):
@@ -490,8 +506,14 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                 # own size, less 10%, as bound (see margin_restart).
                 max_lift = MAX_MARGIN_LIFT if direct is None else np.inf
                 x_equality = x0 if equality_diverged else run["x"]
-                restart, log_u_lower = margin_restart(x_equality, x0, t, nlp.angle_margin, max_lift)
-                run = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
+                restart, log_u_lower, from_equality = margin_restart(x_equality, x0, t, nlp.angle_margin,
+                                                                     max_lift)
+                # From the equality result, warm-started with its multipliers (same equalities):
+                # a cold start's bound push broke (8) by 0.02-0.5 there (nefertiti.obj), and the
+                # barrier then had to shrink again (knight 22 -> 18 margin iterations, spot
+                # equal-angles 14 -> 9, brain equal-angles 10 -> 6, same optima).
+                run = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower,
+                                     warm_from=run if from_equality else None)
                 with_margin = True
         penalty = DROPPED_PENALTY
         violation = max_constraint_violation(connectivity, *nlp.unpack(run["x"]))
@@ -544,7 +566,8 @@ def margin_restart(x_equality, x_start, n_faces, angle_margin, max_lift=MAX_MARG
     """Where the margin stage starts, and its lower bounds on log u per corner.
 
     From the equality stage's result if it is finite and lifting its corners to the margin changes
-    none by more than a factor exp(max_lift), else from the stage's own start: a corner the equality stage drove
+    none by more than a factor exp(max_lift) (corners already below the margin at the start: none
+    below their start size by more), else from the stage's own start: a corner the equality stage drove
     far below the margin (armadillo_remeshed.obj equal-areas: u = 1e-8), lifted to it, broke (8) by
     ~7, the margin stage failed and the last-resort solve ran for over an hour. Corners of that
     start which are themselves below the margin (nefertiti.obj's start in the excess gauge has a
@@ -556,16 +579,22 @@ def margin_restart(x_equality, x_start, n_faces, angle_margin, max_lift=MAX_MARG
     restart : array
         A copy, with corners just inside their bounds.
     log_u_lower : (3 n_faces,) array
+    from_equality : bool
+        Whether ``restart`` is the equality result (else the stage's start).
     """
     margin = np.log(angle_margin)
     restart = x_start
-    if np.isfinite(x_equality).all() and np.min(x_equality[:3 * n_faces]) > margin - max_lift:
-        restart = x_equality
-    restart = np.array(restart, float)
+    # A corner already below the margin at the start counts from its own size there: nefertiti.obj
+    # has two of 6e-7 rad, which grew to 7e-6 in the equality stage; measured from the margin they
+    # sent the margin stage back to the start (14 iterations to regain the equality objective).
+    floor = np.minimum(margin, x_start[:3 * n_faces])
+    from_equality = bool(np.isfinite(x_equality).all()
+                         and np.all(x_equality[:3 * n_faces] > floor - max_lift))
+    restart = np.array(x_equality if from_equality else x_start, float)
     log_u = restart[:3 * n_faces]
     log_u_lower = np.where(log_u < margin - MAX_MARGIN_LIFT, log_u - 0.1, margin)
     restart[:3 * n_faces] = np.maximum(log_u, log_u_lower + 1e-3)
-    return restart, log_u_lower
+    return restart, log_u_lower, from_equality
 
 
 def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, stages=None):
@@ -583,8 +612,8 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
 
     Parameters
     ----------
-    nlp_for : callable(Targets) -> AngleNLP
-        Builds the log-area NLP for one set of targets.
+    nlp_for : callable(Targets, x) -> AngleNLP
+        Builds the log-area NLP for one set of targets, to be started from the point x.
     targets : Targets
     x0 : array
         Start (log-chord variables) with its own excesses exp(x0[3t:]).
@@ -611,7 +640,7 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
     for step in range(1, n_steps + 1):
         tau = step / n_steps
         excess = np.exp((1 - tau) * start_log + tau * target_log)
-        nlp = nlp_for(replace(targets, excess=excess * (4 * np.pi / excess.sum())))
+        nlp = nlp_for(replace(targets, excess=excess * (4 * np.pi / excess.sum())), x)
         run = nlp.solve(x, options=capped, progress=progress)
         if stages is not None:
             stages.append(_stage_record("area-continuation-%d/%d" % (step, n_steps), run))

@@ -225,7 +225,7 @@ def test_area_continuation_walks_the_log_excesses_to_the_targets():
     x0 = nlp.pack(angles, excess)
     stages = []
     x = solve.area_continuation(
-        lambda tg: AngleNLP(c, tg, "log-chord", dropped_vertices=solve.independent_vertices(positions),
+        lambda tg, x: AngleNLP(c, tg, "log-chord", dropped_vertices=solve.independent_vertices(positions),
                             area_form="log"),
         targets, x0, c.n_faces, dict(solve.DEFAULT_IPOPT_OPTIONS), stages=stages)
     start_error = np.abs(np.log(excess / targets.excess))
@@ -287,23 +287,30 @@ def test_margin_restart_never_lifts_a_corner_far():
     near = start.copy()
     near[:3] = np.log([0.5, 0.5 * margin, 2.0])                            # equality result: 0.5 margin
     near[3] = np.log(0.5)
-    restart, lower = margin_restart(near, start, t, margin)
+    restart, lower, from_equality = margin_restart(near, start, t, margin)
     # Lifting 0.5 * margin to the margin is a small change: the equality result is used, lifted.
-    assert np.allclose(lower, log_margin) and np.all(restart[:6] >= log_margin + 1e-3 - 1e-12)
+    assert from_equality and np.allclose(lower, log_margin)
+    assert np.all(restart[:6] >= log_margin + 1e-3 - 1e-12)
     assert restart[1] == pytest.approx(log_margin + 1e-3) and np.array_equal(restart[6:], near[6:])
     far = near.copy()
     far[1] = log_margin - MAX_MARGIN_LIFT - 5                               # driven to 1e-8-ish
-    restart, lower = margin_restart(far, start, t, margin)
+    restart, lower, from_equality = margin_restart(far, start, t, margin)
     # ... too far to lift: restart from the stage's start, whose own tiny corner keeps its size.
-    assert np.array_equal(restart[6:], start[6:]) and restart[3] == start[3]
+    assert not from_equality and np.array_equal(restart[6:], start[6:]) and restart[3] == start[3]
     assert lower[3] == pytest.approx(start[3] - 0.1) and np.allclose(np.delete(lower, 3), log_margin)
     assert np.all(restart[:6] > lower)
-    restart, _ = margin_restart(np.full(8, np.nan), start, t, margin)         # a diverged equality stage
-    assert np.array_equal(restart[6:], start[6:])
+    kept = near.copy()
+    kept[3] = start[3] + 0.5                                                # the tiny start corner, grown
+    restart, lower, from_equality = margin_restart(kept, start, t, margin)
+    # A corner tiny at the start does not count as driven down: the equality result is used.
+    assert from_equality and np.array_equal(restart[6:], kept[6:]) and restart[3] == kept[3]
+    assert lower[3] == pytest.approx(kept[3] - 0.1)
+    restart, _, from_equality = margin_restart(np.full(8, np.nan), start, t, margin)  # diverged
+    assert not from_equality and np.array_equal(restart[6:], start[6:])
     # With no lift limit (after a diverged direct margin stage) the equality result is kept as it
     # is: its far corner keeps its own size as bound instead of being lifted.
-    restart, lower = margin_restart(far, start, t, margin, max_lift=np.inf)
-    assert np.array_equal(restart, far) and lower[1] == pytest.approx(far[1] - 0.1)
+    restart, lower, from_equality = margin_restart(far, start, t, margin, max_lift=np.inf)
+    assert from_equality and np.array_equal(restart, far) and lower[1] == pytest.approx(far[1] - 0.1)
 
 
 def test_area_mode_falls_back_to_the_equality_stage_when_the_direct_margin_stage_diverges(monkeypatch):
