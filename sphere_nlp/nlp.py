@@ -18,6 +18,8 @@ This is the only module that imports CasADi. Two formulations of the same proble
     log sin^2(a/2) = log sin(e/2) + log sin u_j - log sin alpha_k - log sin alpha_l, the half-angle
     form of the cosine rule: it measures relative edge-length mismatch, so it is equally accurate for
     triangles of any size, and excesses can move over many orders of magnitude by additive steps.
+    At obtuse corners sin alpha and sin u are taken through the other two corners (see
+    ``obtuse_corners``).
 
 The log-chord form hands IPOPT exact derivatives assembled from its per-triangle structure
 (``_build_log_chord``): CasADi's generic differentiation of the whole graph spent superlinear time in
@@ -154,6 +156,11 @@ class AngleNLP:
         ``area_weight * sum(((e - e') / e_mean)^2)``; ``"log"`` is
         ``area_weight * sum((log e - log e')^2)``, convex in the unknown log e, which the area modes
         solve first (:func:`sphere_nlp.solve.area_continuation`) before (9) itself.
+    obtuse_corners : (t, 3) bool array, optional
+        log-chord only: corners whose sin alpha and sin u in (8) are written through the other two
+        corners (sin alpha_j = sin(u_k + u_l), sin u_j = sin(u_k + u_l + e/2), equal under (6)),
+        which stays well-conditioned near alpha = pi; :func:`sphere_nlp.solve.solve_angles` flags
+        the corners above pi/2 where a stage starts. Same feasible set and optima either way.
 
     Notes
     -----

@@ -52,6 +52,13 @@ DEFAULT_IPOPT_OPTIONS = {
     # METIS ordering for MUMPS: MUMPS's automatic choice fills in badly on these KKT systems
     # (10,242 vertices: 3 iterations took 243 s with the default ordering, 20 s with METIS).
     "mumps_pivot_order": 5,
+    # No MC64 matching and cheap iterative scaling in MUMPS's analysis: with the automatic choice
+    # (7 and 77) the analysis used the first matrix's values, and a warm-started margin stage spent
+    # 64 of its 103 s there (nefertiti.obj; 1.9 s now, the stage 40 s). Same iterations and optima
+    # on every row measured; time cheburashka 37 -> 21 s, armadillo_remeshed 12.5 -> 7.5 s,
+    # armadillo.obj 46 -> 38 s.
+    "mumps_permuting_scaling": 0,
+    "mumps_scaling": 8,
     # The filter's cap on the constraint violation (1-norm), theta_max_fact * max(1, start's): at
     # IPOPT's default (1e4) one full step took armadillo_remeshed.obj original-areas' margin stage
     # from max violation 0.07 to 5.5, past sin(alpha) = 0 (evaluation errors), and it never came
