@@ -281,8 +281,9 @@ START_POINTS = ("auto", "conformal", "embedding", "linear")
 # (cheburashka 94 -> 274 iterations, max_planck 102 -> 122, nefertiti's equality stage stalled);
 # with their obtuse form (AngleNLP), against the "area" gauge: nefertiti 93 -> 69 iterations (same
 # objective 207.133106), elephant 24 -> 10, hand 14 -> 9, armadillo_remeshed 14 -> 9, brain 11 -> 9,
-# bunny 13 -> 10, knight 83 -> 80, max_planck 37 -> 35, spot 12 -> 12, cheburashka 72 -> 80; equal-angles
-# spot and bunny 53 -> 44, armadillo_remeshed 25 -> 13; armadillo.obj 15 -> 11. The area modes keep the area gauge (their continuation sets the scale).
+# bunny 13 -> 10, knight 83 -> 80, max_planck 37 -> 35, spot 12 -> 12, cheburashka 72 -> 80;
+# equal-angles spot and bunny 53 -> 44, armadillo_remeshed 25 -> 13; armadillo.obj 15 -> 11. The area
+# modes keep the area gauge (their continuation sets the scale).
 START_GAUGE = "excess"
 
 
