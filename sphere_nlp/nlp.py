@@ -191,7 +191,8 @@ class AngleNLP:
             if obtuse_corners.shape != (t, 3):
                 raise ValueError("obtuse_corners must be a (t, 3) boolean array")
             x, objective, g_eq, self._derivatives = self._build_log_chord(
-                connectivity, targets, kept_vertices, dropped_penalty, area_form, obtuse_corners)
+                connectivity, targets, kept_vertices, dropped_penalty, area_form,
+                obtuse_corners=obtuse_corners)
             g_ineq = ca.MX(0, 1)             # (3)-(5) hold by construction (see the module docstring)
         else:
             x, objective, g_eq, g_ineq = self._build_paper_form(connectivity, targets, formulation,
@@ -247,8 +248,8 @@ class AngleNLP:
         return x, objective, g_eq, g_ineq
 
     @staticmethod
-    def _build_log_chord(connectivity, targets, kept_vertices, dropped_penalty=0.0, area_form="linear",
-                         obtuse_corners=None):
+    def _build_log_chord(connectivity, targets, kept_vertices, dropped_penalty=0.0, area_form="linear", *,
+                         obtuse_corners):
         """The log-chord form as g = A h(z) - b, with h one small function mapped over triangles.
 
         Every term of the objective and of (6)-(8) depends on one triangle's unknowns
