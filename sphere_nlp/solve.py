@@ -49,9 +49,13 @@ DEFAULT_IPOPT_OPTIONS = {
     "sb": "yes",
     # Keep bounds exact: with the default relaxation an angle bounded by 0 can end slightly negative.
     "bound_relax_factor": 0.0,
-    # METIS ordering for MUMPS: MUMPS's automatic choice fills in badly on these KKT systems
-    # (10,242 vertices: 3 iterations took 243 s with the default ordering, 20 s with METIS).
-    "mumps_pivot_order": 5,
+    # AMD ordering for MUMPS. MUMPS's automatic choice fills in badly on these KKT systems
+    # (10,242 vertices: 3 iterations took 243 s), and so does AMF (armadillo_remeshed.obj: 56 s
+    # for the 7 iterations that take 6 s now). AMD against METIS, measured with MC64 off (below):
+    # linear-solver CPU -37% on armadillo_remeshed, -25% on armadillo.obj, -35% on nefertiti.obj
+    # (whole run 128 -> 101 s, peak RSS 2.18 -> 1.92 GB), -16% on the Loop armadillo (173k
+    # vertices, RSS 4.9 -> 4.4 GB); the angle modes take the same iterations to the same optima.
+    "mumps_pivot_order": 0,
     # No MC64 matching and cheap iterative scaling in MUMPS's analysis: with the automatic choice
     # (7 and 77) the analysis used the first matrix's values, and a warm-started margin stage spent
     # 64 of its 103 s there (nefertiti.obj; 1.9 s now, the stage 40 s). Same iterations and optima
