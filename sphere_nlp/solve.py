@@ -53,7 +53,7 @@ DEFAULT_IPOPT_OPTIONS = {
     # (10,242 vertices: 3 iterations took 243 s), and so does AMF (armadillo_remeshed.obj: 56 s
     # for the 7 iterations that take 6 s now). AMD against METIS, measured with MC64 off (below):
     # linear-solver CPU -37% on armadillo_remeshed, -25% on armadillo.obj, -35% on nefertiti.obj
-    # (whole run 128 -> 101 s, peak RSS 2.18 -> 1.92 GB), -16% on the Loop armadillo (173k
+    # (whole run 128 -> 101 s, peak RSS 2.18 -> 1.92 GB), -21% on the Loop armadillo (173k
     # vertices, RSS 4.9 -> 4.4 GB); the angle modes take the same iterations to the same optima.
     "mumps_pivot_order": 0,
     # No MC64 matching and cheap iterative scaling in MUMPS's analysis: with the automatic choice
