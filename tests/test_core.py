@@ -364,7 +364,7 @@ def test_after_two_diverged_runs_the_margin_stage_starts_from_the_feasible_start
 def _small_log_chord_problem():
     """Connectivity, log-chord NLP (original angles) and its feasible start on a small ellipsoid.
 
-    As solve_angles builds it: three redundant vertex sums left out (with every constraint the
+    The three redundant vertex sums are left out, as solve_angles does (with every constraint the
     Jacobian is singular at the solution, and IPOPT's result from a perturbed start then depends
     on the linear solver's ordering: objective 38.6 with METIS, an error with AMD, against 3.17).
     """
