@@ -53,7 +53,8 @@ def test_jacobian_matches_finite_differences(formulation):
     rng = np.random.default_rng(1)
     angles = np.full((c.n_faces, 3), np.pi / 3) + 0.05 * rng.random((c.n_faces, 3))
     x = nlp.pack(angles, angles.sum(1) - np.pi + 0.01)
-    jac = ca.Function("j", [nlp._x], [ca.jacobian(nlp._g_eq, nlp._x)])(x).full()
+    g_eq = nlp._symbolic_problem()[1]
+    jac = ca.Function("j", [nlp._x], [ca.jacobian(g_eq, nlp._x)])(x).full()
     step = 1e-6
     for k in rng.choice(len(x), 12, replace=False):
         dx = np.zeros_like(x)
@@ -65,8 +66,9 @@ def test_jacobian_matches_finite_differences(formulation):
 
 @pytest.mark.parametrize("dropped, with_obtuse", [([], False), ([0, 5, 11], False), ([0, 5, 11], True)])
 def test_structured_derivatives_match_casadi_ad(dropped, with_obtuse):
-    # The log-chord form hands IPOPT hand-assembled exact derivatives (linear-time build); they
-    # must equal CasADi's automatic differentiation of the same objective and constraints.
+    # The log-chord form hands IPOPT exact derivatives assembled from its per-triangle structure,
+    # either as CasADi graphs (evaluation="casadi") or in numpy (the default); both must equal
+    # CasADi's automatic differentiation of the same objective and constraints.
     import casadi as ca
 
     V, F = ellipsoid(1)
@@ -78,18 +80,61 @@ def test_structured_derivatives_match_casadi_ad(dropped, with_obtuse):
     angles = np.full((c.n_faces, 3), np.pi / 3) + 0.1 * rng.random((c.n_faces, 3))
     x = nlp.pack(angles, angles.sum(1) - np.pi + 0.02)
     lam_f, lam_g = 0.7, rng.standard_normal(nlp.n_equalities)
-    X, f, g = nlp._x, nlp._f, nlp._g_eq
-    reference = ca.Function("ad", [X], [ca.gradient(f, X), ca.jacobian(g, X),
+    X = nlp._x
+    f, g, _, graph_derivatives = nlp._symbolic_problem()
+    reference = ca.Function("ad", [X], [f, g, ca.gradient(f, X), ca.jacobian(g, X),
                                         ca.hessian(lam_f * f + ca.dot(ca.DM(lam_g), g), X)[0]])
-    grad_ad, jac_ad, hess_ad = (m.full() for m in reference(x))
-    d = nlp._derivatives
-    grad = d["grad_f"](x, ca.DM.zeros(0, 1))[1].full().ravel()
-    jac = d["jac_g"](x, ca.DM.zeros(0, 1))[1].full()
-    hess_upper = d["hess_lag"](x, ca.DM.zeros(0, 1), lam_f, lam_g).full()
-    np.testing.assert_allclose(grad, grad_ad.ravel(), rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(jac, jac_ad, rtol=1e-10, atol=1e-10)
-    assert np.allclose(np.tril(hess_upper, -1), 0)
-    np.testing.assert_allclose(np.triu(hess_upper), np.triu(hess_ad), rtol=1e-9, atol=1e-9)
+    f_ad, g_ad, grad_ad, jac_ad, hess_ad = (m.full() for m in reference(x))
+    numpy_f, numpy_g, numpy_derivatives, _ = nlp._numpy_problem()
+    np.testing.assert_allclose(ca.Function("fg", [X], [numpy_f, numpy_g])(x)[1].full(), g_ad, atol=1e-12)
+    assert abs(nlp.evaluate(x)[0] - f_ad.item()) <= 1e-12 * abs(f_ad.item())
+    for d in (graph_derivatives, numpy_derivatives):
+        grad = d["grad_f"](x, ca.DM.zeros(0, 1))[1].full().ravel()
+        jac = d["jac_g"](x, ca.DM.zeros(0, 1))[1].full()
+        hess_upper = d["hess_lag"](x, ca.DM.zeros(0, 1), lam_f, lam_g).full()
+        np.testing.assert_allclose(grad, grad_ad.ravel(), rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(jac, jac_ad, rtol=1e-10, atol=1e-10)
+        assert np.allclose(np.tril(hess_upper, -1), 0)
+        np.testing.assert_allclose(np.triu(hess_upper), np.triu(hess_ad), rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("mode", ["original-angles", "equal-areas"])
+def test_numpy_and_casadi_evaluation_reach_the_same_optimum(mode):
+    # IPOPT's iterates depend on the evaluation only through rounding. In the angle mode that means
+    # the same path to the same point; the equal-areas optimum of this symmetric ellipsoid is not
+    # isolated (the two runs end at different points of equal objective, 65 and 122 iterations).
+    V, F = ellipsoid(2)
+    c = build_connectivity(F, len(V))
+    targets = make_targets(mode, V, F, c.vertex_degree)
+    P = V / np.linalg.norm(V, axis=1, keepdims=True)
+    angles, excess = spherical_angles(P, F), signed_solid_angles(P, F)
+    runs = []
+    for evaluation in ("numpy", "casadi"):
+        nlp = AngleNLP(c, targets, "log-chord", dropped_vertices=[0, 1, 2],
+                       obtuse_corners=angles > np.pi / 2, evaluation=evaluation)
+        runs.append(nlp.solve(nlp.pack(angles, excess), options={"tol": 1e-10, "print_level": 0, "sb": "yes"}))
+    assert all(r["success"] for r in runs)
+    assert abs(runs[0]["objective"] - runs[1]["objective"]) <= 1e-10 * abs(runs[1]["objective"])
+    for run in runs:
+        assert np.abs(nlp.evaluate(run["x"])[1]).max() < 1e-9
+    if mode == "original-angles":
+        assert runs[0]["iterations"] == runs[1]["iterations"]
+        np.testing.assert_allclose(runs[0]["x"], runs[1]["x"], atol=1e-7)
+
+
+def test_vectorized_sx_function_replays_casadi_exactly():
+    import casadi as ca
+    from sphere_nlp.nlp import _vectorize
+
+    x, y = ca.SX.sym("x", 3), ca.SX.sym("y")
+    expr = ca.vertcat(ca.sin(x[0]) * ca.exp(y) / x[1], ca.log(x[2]) ** 2 - ca.sqrt(x[1]), 1.5,
+                      ca.fmax(x[0], y) + ca.cos(x[0] * x[2]))
+    f = ca.Function("f", [x, y], [expr])
+    rng = np.random.default_rng(0)
+    X, Y = rng.random((3, 50)) + 0.1, rng.standard_normal((1, 50))
+    expected = f.map(50)(X, Y).full()
+    np.testing.assert_allclose(_vectorize(f)(X, Y)[0], expected, rtol=1e-15, atol=1e-15)
+
 
 def test_obtuse_form_of_the_edge_constraints_is_exact_on_valid_triangulations():
     # At corners flagged obtuse the log-chord form writes sin(alpha) and sin(u) through the other
