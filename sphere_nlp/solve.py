@@ -56,13 +56,16 @@ DEFAULT_IPOPT_OPTIONS = {
     # (whole run 128 -> 101 s, peak RSS 2.18 -> 1.92 GB), -21% on the Loop armadillo (173k
     # vertices, RSS 4.9 -> 4.4 GB); the angle modes take the same iterations to the same optima.
     "mumps_pivot_order": 0,
-    # No MC64 matching and cheap iterative scaling in MUMPS's analysis: with the automatic choice
-    # (7 and 77) the analysis used the first matrix's values, and a warm-started margin stage spent
-    # 64 of its 103 s there (nefertiti.obj; 1.9 s now, the stage 40 s). Same iterations and optima
-    # on every row measured; time cheburashka 37 -> 21 s, armadillo_remeshed 12.5 -> 7.5 s,
-    # armadillo.obj 46 -> 38 s.
+    # No MC64 matching and no scaling in MUMPS: with the automatic choice (7 and 77) the analysis
+    # used the first matrix's values, and a warm-started margin stage spent 64 of its 103 s there
+    # (nefertiti.obj; 1.9 s now). Same iterations and optima on every row measured; time
+    # cheburashka 37 -> 21 s, armadillo_remeshed 12.5 -> 7.5 s, armadillo.obj 46 -> 38 s. The
+    # iterative scaling then used (8) cost 8% of a solve (armadillo.obj profile): without it the
+    # search directions took 11.3-12.9 s against 14.5-15.8 s (armadillo.obj, alternating runs),
+    # nefertiti.obj 89.6 -> 75.6 s back to back; same iterations and optima in the angle modes,
+    # area modes the same optima in +-10% iterations (hand_closed.obj original-areas 311 -> 293).
     "mumps_permuting_scaling": 0,
-    "mumps_scaling": 8,
+    "mumps_scaling": 0,
     # The filter's cap on the constraint violation (1-norm), theta_max_fact * max(1, start's): at
     # IPOPT's default (1e4) one full step took armadillo_remeshed.obj original-areas' margin stage
     # from max violation 0.07 to 5.5, past sin(alpha) = 0 (evaluation errors), and it never came
