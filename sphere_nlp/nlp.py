@@ -158,6 +158,10 @@ _BINARY_OPERATIONS = {
 }
 
 
+# Batch slice of _vectorize's evaluation (see there).
+_VECTOR_SLICE = int(__import__("os").environ.get("VSLICE", "8192"))
+
+
 def _vectorize(function):
     """A numpy version of a small SX Function, evaluated for a whole batch at once.
 
@@ -200,7 +204,12 @@ def _vectorize(function):
         batch = np.shape(arrays[0])[-1]
         out = [np.empty((size, batch)) for size in sizes]
         with np.errstate(all="ignore"):          # NaN/inf propagate as in CasADi; IPOPT handles them
-            kernel(out, *arrays)
+            # In slices of the batch: each instruction makes a temporary array, and at the whole
+            # batch's size (2.8 MB at 346k triangles) every one was a fresh mmap and page faults
+            # (a third of the evaluation time was system time); a slice's stay in cache.
+            for begin in range(0, batch, _VECTOR_SLICE):
+                part = slice(begin, begin + _VECTOR_SLICE)
+                kernel([o[:, part] for o in out], *[a[..., part] for a in arrays])
         return out
     return evaluate
 
@@ -244,34 +253,40 @@ class _LogChordValues:
         self._objective_rows = parts["objective_rows"]
         self._P, self._penalty = (P.tocsr() if P is not None else None), parts["dropped_penalty"]
         width = self._width
-        # D = dh/dx, stored as CSR with a permutation from the per-triangle Jacobian's order.
-        d_rows, d_cols = parts["d_rows"], parts["d_cols"]
-        order = sp.csr_matrix((np.arange(1, len(d_rows) + 1, dtype=float), (d_rows, d_cols)),
-                              shape=(width * t, 4 * t))
-        self._d_order = order.data.astype(np.int64) - 1
-        self._d_indices, self._d_indptr = order.indices, order.indptr
+        # D = dh/dx is kept as the per-triangle Jacobian returns it: (4 width, t), row c width + r
+        # holding dh_r/dz_c of every triangle; entry (r, c, i) sits at flat index (c width + r) t + i.
+        d_rows, d_cols = parts["d_rows"], parts["d_cols"]                  # triangle-major order
+        flat_index = (np.arange(4 * width)[None, :] * t + np.arange(t)[:, None]).ravel()
+        located = sp.csr_matrix((flat_index + 1.0, (d_rows, d_cols)), shape=(width * t, 4 * t))
         # jac g = A D: each entry is +-1 times one entry of D.
-        product = (self._A @ order).tocsc()
+        product = (self._A @ located).tocsc()
         product.sort_indices()
-        counts = (abs(self._A) @ (order != 0).astype(float)).tocsc()
+        counts = (abs(self._A) @ (located != 0).astype(float)).tocsc()
         counts.sort_indices()
         if counts.nnz != product.nnz or not np.all(counts.data == 1):
             raise AssertionError("a row of A touches a triangle twice")
-        self._jac_source = np.abs(product.data).astype(np.int64) - 1         # index into D's entries
-        self._jac_sign = np.sign(product.data)
+        self._jac_source = np.abs(product.data).astype(np.int64) - 1         # flat index into D
+        self._jac_negative = np.flatnonzero(product.data < 0)
         self.jacobian_sparsity = _casadi_sparsity(product)
+        if self._P is not None:
+            # The penalty needs P D on the unknowns of the triangles at the left-out vertices:
+            # P picks alpha rows r = 8i + 2 + j, whose D entries are (r, c, i) for c = 0..3.
+            P_rows, P_cols = self._P.nonzero()
+            tri_of, r_of = P_cols // width, P_cols % width
+            variables = np.unique(variable_of[tri_of].ravel())
+            self._penalty_rows = np.repeat(P_rows, 4)
+            self._penalty_columns = np.searchsorted(variables, variable_of[tri_of].ravel())
+            self._penalty_sources = ((np.arange(4)[None, :] * width + r_of[:, None]) * t + tri_of[:, None]).ravel()
         # Hessian (upper triangle): the 4x4 blocks, and the penalty's outer product on the
         # variables of the triangles at the left-out vertices.
         hu_rows = variable_of[:, [i for i, _ in upper]].ravel()
         hu_cols = variable_of[:, [j for _, j in upper]].ravel()
         rows, cols = [hu_rows], [hu_cols]
-        self._penalty_variables = None
         if self._P is not None:
-            variables = np.unique((self._P @ (order != 0).astype(float)).tocoo().col)
             a, c = np.triu_indices(len(variables))
             rows.append(variables[a])
             cols.append(variables[c])
-            self._penalty_variables, self._penalty_upper = variables, (a, c)
+            self._penalty_upper = (a, c)
         rows, cols = np.concatenate(rows), np.concatenate(cols)
         pattern = sp.csc_matrix((np.ones(len(rows)), (rows, cols)), shape=(4 * t, 4 * t))
         pattern.sum_duplicates()
@@ -284,7 +299,7 @@ class _LogChordValues:
         self._cached_x = None
 
     def _at(self, x, derivatives=True):
-        """z (4, t), h (flat) and, if derivatives, D's entries in the kernel's and in CSR order, at x.
+        """z (4, t), h (flat, triangle-major) and, if derivatives, D (4 width, t), at x.
 
         Cached for the last x; D only once asked for (line-search trial points need only f and g).
         """
@@ -294,11 +309,10 @@ class _LogChordValues:
             z[:3] = x[:3 * t].reshape(t, 3).T
             z[3] = x[3 * t:]
             h = self._triangle(z, *self._parameters)[0]                  # (width, t)
-            self._cached = [z, h.T.ravel(), None, None]
+            self._cached = [z, h.T.ravel(), None]
             self._cached_x = np.array(x, dtype=float)
         if derivatives and self._cached[2] is None:
-            d = self._triangle_jacobian(self._cached[0], *self._parameters)[0].T.ravel()
-            self._cached[2:] = d, d[self._d_order]
+            self._cached[2] = self._triangle_jacobian(self._cached[0], *self._parameters)[0]
         return self._cached
 
     def _seed(self, h):
@@ -311,34 +325,36 @@ class _LogChordValues:
             seed = seed + 2 * self._penalty * (self._P.T @ residual)
         return f, seed
 
-    def _d_matrix(self, d):
-        return sp.csr_matrix((d, self._d_indices, self._d_indptr), shape=(len(self._objective_rows),
-                                                                          self.n_variables))
-
     def objective_and_constraints(self, x):
-        _, h, _, _ = self._at(x, derivatives=False)
+        _, h, _ = self._at(x, derivatives=False)
         return self._seed(h)[0], self._A @ h - self._b
 
     def gradient(self, x):
-        _, h, _, d = self._at(x)
+        _, h, d = self._at(x)
         f, seed = self._seed(h)
-        return f, self._d_matrix(d).T @ seed
+        t = self.n_faces
+        # D^T seed triangle by triangle: each unknown belongs to one triangle
+        per_unknown = np.einsum("crt,rt->ct", d.reshape(4, self._width, t), seed.reshape(t, self._width).T)
+        return f, np.concatenate([per_unknown[:3].T.ravel(), per_unknown[3]])
 
     def jacobian(self, x):
         """(g, nonzeros of jac g in the order of ``jacobian_sparsity``)."""
-        _, h, d, _ = self._at(x)
-        return self._A @ h - self._b, self._jac_sign * d[self._jac_source]
+        _, h, d = self._at(x)
+        values = d.ravel()[self._jac_source]
+        values[self._jac_negative] *= -1.0
+        return self._A @ h - self._b, values
 
     def hessian(self, x, lam_f, lam_g):
         """Nonzeros of the upper triangle of the Lagrangian's Hessian (``hessian_sparsity`` order)."""
-        z, h, _, d = self._at(x)
+        z, h, d = self._at(x)
         _, seed = self._seed(h)
         weights = (lam_f * seed + self._At @ lam_g).reshape(self.n_faces, self._width).T
         blocks = self._triangle_hessian(z, *self._parameters, np.ascontiguousarray(weights))[0]
         values = np.zeros(self._hessian_nnz)
         values[self._block_positions] = blocks
         if self._P is not None:
-            pd = (self._P @ self._d_matrix(d))[:, self._penalty_variables].toarray()
+            pd = np.zeros((self._P.shape[0], self._penalty_upper[0].max() + 1))
+            np.add.at(pd, (self._penalty_rows, self._penalty_columns), d.ravel()[self._penalty_sources])
             outer = 2 * self._penalty * lam_f * (pd.T @ pd)
             np.add.at(values, self._penalty_positions, outer[self._penalty_upper])
         return values
