@@ -158,8 +158,8 @@ _BINARY_OPERATIONS = {
 }
 
 
-# Batch slice of _vectorize's evaluation (see there).
-_VECTOR_SLICE = int(__import__("os").environ.get("VSLICE", "8192"))
+# Triangles per slice in _vectorize's evaluation (see there).
+_VECTOR_SLICE = 8192
 
 
 def _vectorize(function):

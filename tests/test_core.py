@@ -131,8 +131,9 @@ def test_vectorized_sx_function_replays_casadi_exactly():
                       ca.fmax(x[0], y) + ca.cos(x[0] * x[2]))
     f = ca.Function("f", [x, y], [expr])
     rng = np.random.default_rng(0)
-    X, Y = rng.random((3, 50)) + 0.1, rng.standard_normal((1, 50))
-    expected = f.map(50)(X, Y).full()
+    batch = 20000                                  # more than one slice of the evaluation
+    X, Y = rng.random((3, batch)) + 0.1, rng.standard_normal((1, batch))
+    expected = f.map(batch)(X, Y).full()
     np.testing.assert_allclose(_vectorize(f)(X, Y)[0], expected, rtol=1e-15, atol=1e-15)
 
 
