@@ -206,7 +206,7 @@ def _vectorize(function):
         with np.errstate(all="ignore"):          # NaN/inf propagate as in CasADi; IPOPT handles them
             # In slices of the batch: each instruction makes a temporary array, and at the whole
             # batch's size (2.8 MB at 346k triangles) every one was a fresh mmap and page faults
-            # (a third of the evaluation time was system time); a slice's stay in cache.
+            # (a third of the evaluation time was system time); a slice's temporaries stay in cache.
             for begin in range(0, batch, _VECTOR_SLICE):
                 part = slice(begin, begin + _VECTOR_SLICE)
                 kernel([o[:, part] for o in out], *[a[..., part] for a in arrays])
@@ -270,7 +270,7 @@ class _LogChordValues:
         self.jacobian_sparsity = _casadi_sparsity(product)
         if self._P is not None:
             # The penalty needs P D on the unknowns of the triangles at the left-out vertices:
-            # P picks alpha rows r = 8i + 2 + j, whose D entries are (r, c, i) for c = 0..3.
+            # P (entries 1) picks alpha rows 8i + r, r = 2 + j, whose D entries are (r, c, i), c = 0..3.
             P_rows, P_cols = self._P.nonzero()
             tri_of, r_of = P_cols // width, P_cols % width
             variables = np.unique(variable_of[tri_of].ravel())
