@@ -67,11 +67,12 @@ DEFAULT_IPOPT_OPTIONS = {
     "mumps_permuting_scaling": 0,
     "mumps_scaling": 0,
     # IPOPT's default refines every search direction at least once; MUMPS's solves are accurate
-    # enough here that refining only when the residual asks for it halves the back-solves
-    # (armadillo.obj original-angles: back-solve time 3.9 -> 2.1-2.5 s, search directions
-    # 11.2-11.9 -> 8.7-10.3 s in alternating runs) with the same iterations and optima in the angle
-    # modes (nefertiti, max_planck, cheburashka, knight); area modes nearby optima (knight
-    # original-areas 180 -> 169 iterations, objective 21.2298 -> 20.7137).
+    # enough here that refining only when the residual asks for it cuts the back-solve time by a
+    # third or more (armadillo.obj original-angles: 3.9 -> 2.1-2.5 s, search directions 11.2-11.9
+    # -> 8.7-10.3 s in alternating runs; the Loop armadillo: no measurable change either way) with
+    # the same iterations and optima in the angle modes (nefertiti, max_planck, cheburashka,
+    # knight); area modes nearby optima (knight original-areas 180 -> 169 iterations, objective
+    # 21.2298 -> 20.7137).
     "min_refinement_steps": 0,
     # The filter's cap on the constraint violation (1-norm), theta_max_fact * max(1, start's): at
     # IPOPT's default (1e4) one full step took armadillo_remeshed.obj original-areas' margin stage
