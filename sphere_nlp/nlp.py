@@ -258,12 +258,11 @@ class _LogChordValues:
         d_rows, d_cols = parts["d_rows"], parts["d_cols"]                  # triangle-major order
         flat_index = (np.arange(4 * width)[None, :] * t + np.arange(t)[:, None]).ravel()
         located = sp.csr_matrix((flat_index + 1.0, (d_rows, d_cols)), shape=(width * t, 4 * t))
-        # jac g = A D: each entry is +-1 times one entry of D.
+        # jac g = A D: each entry is +-1 times one entry of D, because no row of A touches a
+        # triangle twice; then each of A's entries (a row of D) gives 4 entries of its own.
         product = (self._A @ located).tocsc()
         product.sort_indices()
-        counts = (abs(self._A) @ (located != 0).astype(float)).tocsc()
-        counts.sort_indices()
-        if counts.nnz != product.nnz or not np.all(counts.data == 1):
+        if product.nnz != 4 * self._A.nnz:
             raise AssertionError("a row of A touches a triangle twice")
         self._jac_source = np.abs(product.data).astype(np.int64) - 1         # flat index into D
         self._jac_negative = np.flatnonzero(product.data < 0)
@@ -277,6 +276,7 @@ class _LogChordValues:
             self._penalty_rows = np.repeat(P_rows, 4)
             self._penalty_columns = np.searchsorted(variables, variable_of[tri_of].ravel())
             self._penalty_sources = ((np.arange(4)[None, :] * width + r_of[:, None]) * t + tri_of[:, None]).ravel()
+            self._penalty_shape = (self._P.shape[0], len(variables))
         # Hessian (upper triangle): the 4x4 blocks, and the penalty's outer product on the
         # variables of the triangles at the left-out vertices.
         hu_rows = variable_of[:, [i for i, _ in upper]].ravel()
@@ -299,39 +299,36 @@ class _LogChordValues:
         self._cached_x = None
 
     def _at(self, x, derivatives=True):
-        """z (4, t), h (flat, triangle-major) and, if derivatives, D (4 width, t), at x.
+        """At x: z (4, t), the objective f, its gradient with respect to h (flat, triangle-major),
+        the constraints g and, if derivatives, D (4 width, t).
 
-        Cached for the last x; D only once asked for (line-search trial points need only f and g).
+        Cached for the last x, as IPOPT asks for all of them at the same point; D only once asked
+        for (line-search trial points need only f and g).
         """
         if self._cached_x is None or not np.array_equal(x, self._cached_x):
             t = self.n_faces
             z = np.empty((4, t))
             z[:3] = x[:3 * t].reshape(t, 3).T
             z[3] = x[3 * t:]
-            h = self._triangle(z, *self._parameters)[0]                  # (width, t)
-            self._cached = [z, h.T.ravel(), None]
+            h = self._triangle(z, *self._parameters)[0].T.ravel()        # rows 8i.. of triangle i
+            f = float(np.sum(h[::self._width]))
+            seed = self._objective_rows
+            if self._P is not None:
+                residual = self._P @ h - 2 * np.pi
+                f += self._penalty * float(residual @ residual)
+                seed = seed + 2 * self._penalty * (self._P.T @ residual)
+            self._cached = [z, f, seed, self._A @ h - self._b, None]
             self._cached_x = np.array(x, dtype=float)
-        if derivatives and self._cached[2] is None:
-            self._cached[2] = self._triangle_jacobian(self._cached[0], *self._parameters)[0]
+        if derivatives and self._cached[4] is None:
+            self._cached[4] = self._triangle_jacobian(self._cached[0], *self._parameters)[0]
         return self._cached
 
-    def _seed(self, h):
-        """Objective (with the penalty) and its gradient with respect to h."""
-        f = float(np.sum(h[::self._width]))
-        seed = self._objective_rows
-        if self._P is not None:
-            residual = self._P @ h - 2 * np.pi
-            f += self._penalty * float(residual @ residual)
-            seed = seed + 2 * self._penalty * (self._P.T @ residual)
-        return f, seed
-
     def objective_and_constraints(self, x):
-        _, h, _ = self._at(x, derivatives=False)
-        return self._seed(h)[0], self._A @ h - self._b
+        _, f, _, g, _ = self._at(x, derivatives=False)
+        return f, g
 
     def gradient(self, x):
-        _, h, d = self._at(x)
-        f, seed = self._seed(h)
+        _, f, seed, _, d = self._at(x)
         t = self.n_faces
         # D^T seed triangle by triangle: each unknown belongs to one triangle
         per_unknown = np.einsum("crt,rt->ct", d.reshape(4, self._width, t), seed.reshape(t, self._width).T)
@@ -339,21 +336,20 @@ class _LogChordValues:
 
     def jacobian(self, x):
         """(g, nonzeros of jac g in the order of ``jacobian_sparsity``)."""
-        _, h, d = self._at(x)
+        _, _, _, g, d = self._at(x)
         values = d.ravel()[self._jac_source]
         values[self._jac_negative] *= -1.0
-        return self._A @ h - self._b, values
+        return g, values
 
     def hessian(self, x, lam_f, lam_g):
         """Nonzeros of the upper triangle of the Lagrangian's Hessian (``hessian_sparsity`` order)."""
-        z, h, d = self._at(x)
-        _, seed = self._seed(h)
+        z, _, seed, _, d = self._at(x)
         weights = (lam_f * seed + self._At @ lam_g).reshape(self.n_faces, self._width).T
         blocks = self._triangle_hessian(z, *self._parameters, np.ascontiguousarray(weights))[0]
         values = np.zeros(self._hessian_nnz)
         values[self._block_positions] = blocks
         if self._P is not None:
-            pd = np.zeros((self._P.shape[0], self._penalty_upper[0].max() + 1))
+            pd = np.zeros(self._penalty_shape)
             np.add.at(pd, (self._penalty_rows, self._penalty_columns), d.ravel()[self._penalty_sources])
             outer = 2 * self._penalty * lam_f * (pd.T @ pd)
             np.add.at(values, self._penalty_positions, outer[self._penalty_upper])
@@ -726,7 +722,7 @@ class AngleNLP:
         """Objective and equality-constraint residuals at x (numpy)."""
         if self._numeric is not None:
             f, g = self._numeric.objective_and_constraints(np.asarray(x, float).ravel())
-            return float(f), g
+            return float(f), g.copy()                # the evaluator keeps g for its next callers
         if self._functions is None:
             objective, g_eq = self._symbolic_problem()[:2]
             self._functions = ca.Function("sphere_nlp_eval", [self._x], [objective, g_eq])
