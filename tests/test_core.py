@@ -8,7 +8,7 @@ from sphere_nlp.certify import certify, signed_solid_angles, spherical_angles
 from sphere_nlp.connectivity import build_connectivity, validate_mesh
 from sphere_nlp.nlp import AngleNLP
 from sphere_nlp.shapes import cylinder, icosphere, octahedron, tetrahedron
-from sphere_nlp.solve import constraint_residuals, linear_initial_guess
+from sphere_nlp.solve import constraint_residuals, independent_vertices, linear_initial_guess
 from sphere_nlp.targets import MODES, make_targets
 from sphere_nlp.unfold import half_chords_squared
 
@@ -109,8 +109,13 @@ def test_numpy_and_casadi_evaluation_reach_the_same_optimum(mode):
     P = V / np.linalg.norm(V, axis=1, keepdims=True)
     angles, excess = spherical_angles(P, F), signed_solid_angles(P, F)
     runs = []
+    # Three vertices with independent positions, as solve_angles picks them: the first three lie in
+    # one plane through the centre, which left the Jacobian singular, and whether IPOPT's
+    # least-squares multipliers then failed depended on rounding (6 against 5 iterations on an
+    # AMD EPYC machine, equal on the machine the test was written on).
+    dropped = independent_vertices(P)
     for evaluation in ("numpy", "casadi"):
-        nlp = AngleNLP(c, targets, "log-chord", dropped_vertices=[0, 1, 2],
+        nlp = AngleNLP(c, targets, "log-chord", dropped_vertices=dropped,
                        obtuse_corners=angles > np.pi / 2, evaluation=evaluation)
         runs.append(nlp.solve(nlp.pack(angles, excess), options={"tol": 1e-10, "print_level": 0, "sb": "yes"}))
     assert all(r["success"] for r in runs)
