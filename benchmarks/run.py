@@ -5,7 +5,8 @@
     python benchmarks/run.py --cases knight.off spot.obj --modes original-angles
 
 Each case runs in its own subprocess (so peak memory is per case) with a wall-clock cap; a case
-that hits the cap is recorded as such. The "straightforward" rows run the paper's formulation
+that hits the cap is recorded as such, with the stage, iteration, objective and constraint violation
+it had reached. The "straightforward" rows run the paper's formulation
 verbatim (faithful, linear least-squares start) on ellipsoids of 2,562 and 10,242 vertices for the
 speed-up ratio against the default path.
 """
@@ -49,7 +50,7 @@ elif mesh.startswith("loop:"):
 t0 = time.perf_counter()
 # Where the run is, for the parent to report if the case hits its cap: the stages so far with their
 # iteration counts and the current stage's last iteration (rewritten at most every 2 s).
-seen = {"stages": [], "last": None, "written": 0.0}
+seen = {"stages": [], "written": 0.0}
 def progress(stage, iteration, objective, violation, elapsed):
     if not seen["stages"] or seen["stages"][-1][0] != stage or iteration < seen["stages"][-1][1]:
         seen["stages"].append([stage, 0])
