@@ -5,7 +5,10 @@
 Prints every IPOPT iteration (stage, iteration, objective, constraint violation, elapsed time), writes
 IPOPT's own log (print level 5) to OUT/ipopt.log and, after every IPOPT run, OUT/run<k>.npz with its
 start ``x0``, result ``x`` and multipliers ``lam_g``, ``lam_x`` (log-chord variables: log u for the 3t
-corners, then log e for the t triangles), so a later stage can be studied from a saved point.
+corners, then log e for the t triangles), so a later stage can be studied from a saved point. With
+``--checkpoint-every K`` it also saves the current iterate every K iterations to OUT/checkpoint.npz
+(``x``, ``lam_g``, ``lam_x``, ``run``, ``iteration``, ``objective``), so that a run stopped before its end
+(a session's time limit, a cap) still leaves its last point behind.
 """
 
 import argparse
@@ -27,9 +30,13 @@ def main(argv=None):
     parser.add_argument("mode")
     parser.add_argument("--out", required=True, help="folder for ipopt.log and run<k>.npz")
     parser.add_argument("--max-time", type=float, default=600.0, help="IPOPT limit per stage, s (600)")
+    parser.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
+                        help="save the current iterate to OUT/checkpoint.npz every K iterations")
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.checkpoint_every > 0:
+        checkpoint_iterates(out / "checkpoint.npz", args.checkpoint_every, nlp_module)
 
     original_solve = nlp_module.AngleNLP.solve
     runs = [0]
@@ -54,6 +61,28 @@ def main(argv=None):
     print(result)
     for stage in result.stages:
         print(stage)
+
+
+def checkpoint_iterates(path, every, nlp_module):
+    """Make IPOPT's iteration callback save (x, multipliers) to ``path`` every ``every`` iterations."""
+    import casadi as ca
+
+    names = ca.nlpsol_out()
+    original_eval = nlp_module._ProgressCallback.eval
+    solves = [0]                                   # IPOPT runs so far, numbered as run<k>.npz
+
+    def saving_eval(self, arg):
+        if self.iteration == 0:
+            solves[0] += 1
+        if self.iteration % every == 0:
+            values = {name: np.asarray(arg[names.index(name)]).ravel() for name in ("x", "lam_g", "lam_x")}
+            temporary = path.with_name(path.stem + ".tmp.npz")
+            np.savez(temporary, run=solves[0], iteration=self.iteration,
+                     objective=float(arg[names.index("f")]), **values)
+            temporary.replace(path)
+        return original_eval(self, arg)
+
+    nlp_module._ProgressCallback.eval = saving_eval
 
 
 if __name__ == "__main__":
