@@ -167,6 +167,21 @@ def test_report_has_unfold_errors_before_and_after_correction():
     assert report["max_angle_error"] == pytest.approx(unfold_report["corrected_max_angle_error"], abs=1e-15)
 
 
+def test_correction_stops_at_the_floor_of_angles_no_positions_have():
+    # Slow progress above SLOW_TARGET keeps the correction going (armadillo.obj equal-areas: 1.4e-5
+    # -> 8.8e-8 rad); angles off by 1e-6 or 1e-5 from any positions have a floor above it, where
+    # the correction must still stop after a few steps instead of running to its iteration limit.
+    V, F = icosphere(3)
+    rng = np.random.default_rng(1)
+    exact = spherical_angles(V, F)
+    for noise in (1e-6, 1e-5):
+        noisy = exact + noise * rng.normal(size=exact.shape)
+        X, stats = correct(F, noisy, V + 1e-3 * rng.normal(size=V.shape))
+        assert stats["iterations"] <= 10
+        assert max_angle_error(X, F, noisy) < 5 * noise          # the least-squares floor, not a stall
+        assert certify(X / np.linalg.norm(X, axis=1, keepdims=True), F).valid
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("mesh", ["random", "needles"])
 def test_large_meshes_reach_the_angles(mesh):
