@@ -35,11 +35,11 @@ def main(argv=None):
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    if args.checkpoint_every > 0:
-        checkpoint_iterates(out / "checkpoint.npz", args.checkpoint_every, nlp_module)
-
     original_solve = nlp_module.AngleNLP.solve
     runs = [0]
+    if args.checkpoint_every > 0:
+        # the run in progress is the one after those finished (numbered as run<k>.npz)
+        checkpoint_iterates(out / "checkpoint.npz", args.checkpoint_every, nlp_module, lambda: runs[0] + 1)
 
     def saving_solve(self, x0, *pos, **kw):
         run = original_solve(self, x0, *pos, **kw)
@@ -63,21 +63,19 @@ def main(argv=None):
         print(stage)
 
 
-def checkpoint_iterates(path, every, nlp_module):
-    """Make IPOPT's iteration callback save (x, multipliers) to ``path`` every ``every`` iterations."""
+def checkpoint_iterates(path, every, nlp_module, current_run):
+    """Make IPOPT's iteration callback save (x, multipliers) to ``path`` every ``every`` iterations,
+    labelled with ``current_run()``."""
     import casadi as ca
 
     names = ca.nlpsol_out()
     original_eval = nlp_module._ProgressCallback.eval
-    solves = [0]                                   # IPOPT runs so far, numbered as run<k>.npz
 
     def saving_eval(self, arg):
-        if self.iteration == 0:
-            solves[0] += 1
         if self.iteration % every == 0:
             values = {name: np.asarray(arg[names.index(name)]).ravel() for name in ("x", "lam_g", "lam_x")}
             temporary = path.with_name(path.stem + ".tmp.npz")
-            np.savez(temporary, run=solves[0], iteration=self.iteration,
+            np.savez(temporary, run=current_run(), iteration=self.iteration,
                      objective=float(arg[names.index("f")]), **values)
             temporary.replace(path)
         return original_eval(self, arg)
