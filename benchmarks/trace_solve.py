@@ -8,7 +8,8 @@ start ``x0``, result ``x`` and multipliers ``lam_g``, ``lam_x`` (log-chord varia
 corners, then log e for the t triangles), so a later stage can be studied from a saved point. With
 ``--checkpoint-every K`` it also saves the current iterate every K iterations to OUT/checkpoint.npz
 (``x``, ``lam_g``, ``lam_x``, ``run``, ``iteration``, ``objective``), so that a run stopped before its end
-(a session's time limit, a cap) still leaves its last point behind.
+(a session's time limit, a cap) still leaves its last point behind. ``finish_trace.py`` turns the last run into a certified sphere and a
+``compare.json`` row.
 """
 
 import argparse
