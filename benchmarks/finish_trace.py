@@ -88,7 +88,8 @@ def main(argv=None):
 
     solved = (status == "Solve_Succeeded" and violation <= FEASIBILITY_TOLERANCE
               and not violates_inequalities(angles, excess))
-    row = {"mesh": Path(args.mesh).name, "method": "sphere_nlp:" + args.mode}
+    row = {"mesh": Path(args.mesh).name, "method": "sphere_nlp:" + args.mode,
+           "n_vertices": len(prepared.vertices)}
     row.update(distortion_summary(prepared.vertices, positions, faces))
     row["valid"] = bool(solved and certificate.valid)
     row.update(time_s=round(solve_s + finish_s, 4),
