@@ -8,15 +8,17 @@ formulation, and the three redundant vertex constraints are left out (see
 
 1. Area modes only (area weight > 0): :func:`area_continuation` walks the excesses from the start's
    to the targets with a log-area objective, so that the next stage starts near its optimum.
-2. "equality" (angle modes; area modes only if their direct margin stage diverged): IPOPT on the
-   objective (9) and the equalities, inside a trust region on the log excesses (a window of
-   +-EXCESS_WINDOW around the start).
-3. "margin", in the area modes always, in the angle modes only if the optimum is at (or the
-   solver ran into) a degenerate triangle, or the equality run ended on its window: with every
-   u = alpha - e/2 kept >= a margin, as the paper adds its inequalities only when needed; from the
-   equality result, or from the stage's start if that result has a corner far below the margin
-   (:func:`margin_restart`); re-centred, warm-started and with a window twice as wide each time its
-   result touches the window.
+2. "margin": IPOPT on the objective (9) and the equalities with every u = alpha - e/2 kept >= a
+   margin (corners already below it at the start: >= their own size less 10%, see
+   :func:`margin_restart`), inside a trust region on the log excesses (a window of
+   +-ANGLE_MODE_EXCESS_WINDOW, area modes +-EXCESS_WINDOW, around the start); re-centred,
+   warm-started and with a window twice as wide each time its result touches the window. The
+   paper adds its inequalities only when the equality solution breaks them, but here they cost
+   little (in log u they are simple bounds, mostly far from active) and the optimum is often at a
+   degenerate triangle, which an equality stage chases towards log u = -inf (see
+   :data:`ANGLE_MODE_EXCESS_WINDOW` for the iterations this saves).
+3. Only if that run diverged (left the solution set): "equality", the same without the margin, then
+   "margin" again from its result, or from the start if that diverged too.
 4. "penalty-1e+04", "penalty-1e+06", only if the left-out vertex sums did not come back: again
    from there with their penalty 100 and then 10,000 times stiffer.
 5. "all-constraints", only if they still did not: from the start with all of (7).
@@ -92,6 +94,12 @@ AREA_MODE_IPOPT_OPTIONS = {
     "theta_max_fact": 1.0,
 }
 
+# The angle modes' margin stage starts at the feasible start with a small barrier parameter: its
+# bounds are far from most corners (in log u), and IPOPT's default mu_init (0.1) spent its first
+# iterations pushing into the interior and back (knight original-angles 40 -> 37 iterations,
+# nefertiti 37 -> 32, with windows of 5; the same optima).
+ANGLE_MODE_MARGIN_OPTIONS = {"mu_init": 1e-6}
+
 # Warm start of the inequality stage from the equality solution: start the barrier small and
 # move the start only a little into the interior, so IPOPT stays near the equality optimum.
 WARM_START_OPTIONS = {
@@ -114,6 +122,16 @@ WARM_START_OPTIONS = {
 # optima; the area modes' six small rows 967 -> 970 in all. (10: spot, bunny, hand fewer still,
 # knight, cheburashka, brain more: 264 on those six against 240.)
 EXCESS_WINDOW = 5.0
+# The angle modes' window, now that they go straight to the margin stage (below): against the
+# equality stage followed by the margin stage with windows of 5 (iterations, all to the same
+# optima): original-angles knight 47 -> 30, spot 13 -> 9, bunny 7 -> 7, max_planck 47 -> 19,
+# elephant 9 -> 6, cheburashka 63 -> 27, hand 7 -> 6, brain 8 -> 9, armadillo_remeshed 7 -> 6,
+# armadillo.obj 11 -> 8, nefertiti 35 -> 24; equal-angles knight 51 -> 28, spot 26 -> 18, bunny
+# 23 -> 21, brain 34 -> 33, armadillo_remeshed 9 -> 7, armadillo.obj 44 -> 28. Windows of 5 and 10
+# in that margin-first path: 32 and 22 on nefertiti, 37 and 36 on knight, 59 and 46 on cheburashka
+# (10: 314 on the 17 rows above, against 286); no window at all: nefertiti 31, cheburashka 23,
+# knight 30, armadillo.obj 7.
+ANGLE_MODE_EXCESS_WINDOW = 20.0
 MAX_WINDOW_ROUNDS = 6
 # Each re-centred run widens the window by this factor and is warm-started (multipliers kept, small
 # barrier): a cold restart spent 50-60 iterations re-converging where the last run ended, and the
@@ -451,8 +469,10 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         def obtuse_at(x):
             return nlp.unpack(x)[0] > OBTUSE_ANGLE
 
+        mode_window = EXCESS_WINDOW if targets.area_weight > 0 else ANGLE_MODE_EXCESS_WINDOW
+
         def windowed_solve(x_start, name, inequalities=False, recentre=True, log_u_lower=None,
-                           warm_from=None):
+                           warm_from=None, first_options=None):
             # Bounds log e within EXCESS_WINDOW of the current point act as a trust region: when most
             # triangles are tiny, scaling all their excesses together barely changes (6)-(8) and, in
             # the angle modes, not the objective either, so IPOPT took huge steps along that flat
@@ -460,10 +480,10 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             # barrier terms also convexify it. If the result touches the window, re-centre and repeat
             # (if recentre), else report it as touched (run["touched"]). warm_from: an earlier run
             # with the same equality constraints whose multipliers start this one.
-            x, window, previous = x_start, EXCESS_WINDOW, warm_from
+            x, window, previous = x_start, mode_window, warm_from
             for round_ in range(MAX_WINDOW_ROUNDS):
                 log_e = x[3 * t:]
-                run_options, warm = options, {}
+                run_options, warm = first_options or options, {}
                 if previous is not None:
                     run_options = warm_options
                     lam_x = previous["lam_x"].copy()
@@ -496,19 +516,22 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             obtuse = obtuse_at(x_start)
             nlp = AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped,
                            obtuse_corners=obtuse)
-        with_margin, log_u_lower, direct = False, None, None
-        if targets.area_weight > 0:
-            # Area modes go straight to the margin stage: their optimum is nearly always at a
-            # degenerate triangle, which the equality stage chases towards log u = -inf for
-            # hundreds of iterations before the margin stage starts again anyway
-            # (armadillo_remeshed.obj equal-areas: 667 equality + 627 margin iterations, now 638;
-            # knight.off original-areas 1,443 iterations in all, now 188).
-            restart, log_u_lower, _ = margin_restart(x_start, x_start, t, nlp.angle_margin)
-            direct = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower)
-            run, with_margin = direct, True
-        if direct is None or _diverged(connectivity, nlp, direct["x"]):
-            # Angle modes, or an area mode whose direct margin stage ran away from the solution
-            # set (hand_closed.obj original-areas: violation 5.5): the equality stage first.
+        # Straight to the margin stage: the optimum is often at a degenerate triangle (area modes
+        # nearly always), which an equality stage chases towards log u = -inf before the margin
+        # stage starts again anyway (armadillo_remeshed.obj equal-areas: 667 equality + 627 margin
+        # iterations, now 638; knight.off original-areas 1,443 iterations in all, now 188;
+        # nefertiti.obj original-angles 21 + 14, now 24; see ANGLE_MODE_EXCESS_WINDOW).
+        first_options = None
+        if targets.area_weight == 0:
+            first_options = dict(options, **ANGLE_MODE_MARGIN_OPTIONS)
+            first_options.update(ipopt_options or {})
+        restart, log_u_lower, _ = margin_restart(x_start, x_start, t, nlp.angle_margin)
+        direct = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower,
+                                first_options=first_options)
+        run, with_margin = direct, True
+        if _diverged(connectivity, nlp, direct["x"]):
+            # The direct margin stage ran away from the solution set (hand_closed.obj
+            # original-areas: violation 5.5): the equality stage first.
             # It gets one window: a run that ends on it is continued by the margin stage instead
             # of being re-centred, because the triangles that pull it are often degenerating
             # slivers (max_planck.obj: 4 re-centred equality runs, 534 iterations, chased two
@@ -519,18 +542,16 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             equality_diverged = _diverged(connectivity, nlp, run["x"])
             if (not run["success"] or run["touched"] or equality_diverged
                     or not np.min(run["x"][:3 * t]) > np.log(nlp.angle_margin)):
-                # As the paper adds its inequalities only when needed: the optimum lies at (or
-                # the solver ran into) a degenerate triangle, or further than the window, so
-                # solve again with u >= angle_margin, from the equality result if it is usable
-                # (not diverged; its corners can look fine even then), else from the feasible
-                # start x0. (In the angle modes x_start is x0; after a diverged direct run the
-                # continuation's end is known to fail.) After a diverged direct run the equality
-                # result is used however far its corners are below the margin: they keep their
-                # own size, less 10%, as bound (see margin_restart).
-                max_lift = MAX_MARGIN_LIFT if direct is None else np.inf
+                # The optimum lies at (or the solver ran into) a degenerate triangle, or further
+                # than the window: solve again with u >= angle_margin, from the equality result
+                # if it is usable (not diverged; its corners can look fine even then), else from
+                # the feasible start x0 (in the angle modes x_start is x0; the continuation's end
+                # is known to fail). The equality result is used however far its corners are
+                # below the margin: they keep their own size, less 10%, as bound (see
+                # margin_restart).
                 x_equality = x0 if equality_diverged else run["x"]
                 restart, log_u_lower, from_equality = margin_restart(x_equality, x0, t, nlp.angle_margin,
-                                                                     max_lift)
+                                                                     np.inf)
                 # From the equality result, warm-started with its multipliers (same equalities):
                 # a cold start's bound push broke (8) by 0.02-0.5 there (nefertiti.obj), and the
                 # barrier then had to shrink again (knight 22 -> 18 margin iterations, spot

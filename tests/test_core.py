@@ -364,9 +364,11 @@ def test_margin_restart_never_lifts_a_corner_far():
     assert from_equality and np.array_equal(restart, far) and lower[1] == pytest.approx(far[1] - 0.1)
 
 
-def test_area_mode_falls_back_to_the_equality_stage_when_the_direct_margin_stage_diverges(monkeypatch):
+@pytest.mark.parametrize("mode", ["original-areas", "original-angles"])
+def test_falls_back_to_the_equality_stage_when_the_direct_margin_stage_diverges(monkeypatch, mode):
     # hand_closed.obj original-areas: the margin stage straight from the continuation ended with
-    # violation 5.5; the equality-first path must then run and still certify.
+    # violation 5.5; the equality-first path must then run and still certify. The angle modes
+    # start in the margin stage too, with the same fall-back.
     from sphere_nlp import solve
 
     verdicts = []
@@ -378,7 +380,7 @@ def test_area_mode_falls_back_to_the_equality_stage_when_the_direct_margin_stage
 
     monkeypatch.setattr(solve, "_diverged", first_run_diverged)
     V, F = ellipsoid(2, axes=(1.0, 2.0, 0.7))
-    r = sphere_nlp.parameterize((V, F), target="original-areas")
+    r = sphere_nlp.parameterize((V, F), target=mode)
     names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
     assert names[0] == "margin" and "equality" in names[1:]
     assert verdicts[0] is False                   # the real check passed that run: no false alarm
