@@ -695,7 +695,6 @@ class AngleNLP:
             if excess is None:
                 excess = angles.sum(1) - np.pi
             u = angles - np.asarray(excess)[:, None] / 2
-            # A start outside the valid region is moved just inside it (log needs u, e > 0).
             # A start outside the valid region is moved just inside it (the logarithm needs u, e > 0).
             u = np.where(u > 0, u, 1e-3).ravel()
             excess = np.where(excess > 0, excess, 1e-3 * 4 * np.pi / len(excess))
