@@ -131,3 +131,31 @@ def test_compare_all_merge_from_replaces_and_adds_rows_without_solving(tmp_path)
     table = (docs / "compare.md").read_text()
     assert "9.5" in table and "spot.obj" in table
     assert sorted(p.name for p in docs.iterdir()) == ["compare.json", "compare.md"]
+
+
+def test_finish_trace_certifies_a_trace_end_point_as_compare_would(tmp_path):
+    # The big area-mode rows of docs/compare.md come from traces: their rows must be what `compare`
+    # gives for the same solve, and the sphere they write must certify.
+    from pathlib import Path
+    benchmarks = Path(__file__).resolve().parent.parent / "benchmarks"
+    trace = tmp_path / "trace"
+    with open(tmp_path / "trace.txt", "w") as log:
+        proc = subprocess.run([sys.executable, str(benchmarks / "trace_solve.py"), str(MODELS / "cylinder.off"),
+                               "original-areas", "--out", str(trace)], stdout=log, stderr=subprocess.PIPE,
+                              text=True)
+    assert proc.returncode == 0, proc.stderr
+    sphere = tmp_path / "cylinder.sphere.off"
+    proc = subprocess.run([sys.executable, str(benchmarks / "finish_trace.py"), str(MODELS / "cylinder.off"),
+                           "original-areas", str(trace), "--log", str(tmp_path / "trace.txt"),
+                           "--row", str(tmp_path / "row.json"), "--sphere", str(sphere)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    [row] = json.loads((tmp_path / "row.json").read_text())
+    assert run("compare", MODELS / "cylinder.off", "--out", tmp_path / "cmp",
+               "--methods", "sphere_nlp:original-areas").returncode == 0
+    [reference] = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert row["valid"] and row["status"] == "certified"
+    for key in ("n_vertices", "flipped", "mean_abs_angle_diff_deg", "qc_mean", "qc_max", "mean_abs_log_area"):
+        assert row[key] == pytest.approx(reference[key], rel=1e-9), key
+    V, F = load_mesh(sphere)
+    assert certify(V, F).valid
