@@ -6,8 +6,9 @@
 Reads the trace folder's last ``run<k>.npz`` (log-chord variables: log u for the 3t corners, then
 log e for the t triangles) and its printed log ``trace.txt`` (the lines ``run k: STATUS, N iterations``
 and the elapsed seconds of the progress lines), then does what ``parameterize`` does after its solve:
-the constraint check of :func:`sphere_nlp.solve.max_constraint_violation`, :func:`~sphere_nlp.unfold.
-unfold`, projection to the unit sphere, :func:`~sphere_nlp.certify.certify`, and the distortion
+the constraint check of :func:`sphere_nlp.solve.max_constraint_violation`, the same
+:func:`~sphere_nlp.api.sphere_positions` and :func:`~sphere_nlp.api.max_angle_error`,
+:func:`~sphere_nlp.certify.certify`, and the distortion
 measures of ``compare`` (:func:`~sphere_nlp.metrics.distortion_summary`). The row (a list of one
 row, the format of ``compare.json``) can be merged into ``docs/compare.md`` with
 ``python benchmarks/compare_all.py --merge-from ROW.json``. Its ``valid`` is true only if the last
@@ -47,12 +48,14 @@ def read_trace_log(path):
 
 
 def main(argv=None):
-    from sphere_nlp.certify import certify, spherical_angles
+    from sphere_nlp.api import max_angle_error, sphere_positions
+    from sphere_nlp.certify import certify
     from sphere_nlp.mesh_io import load_mesh, write_json, write_mesh
     from sphere_nlp.metrics import distortion_summary
+    from sphere_nlp.nlp import AngleNLP
     from sphere_nlp.repair import prepare_mesh
     from sphere_nlp.solve import FEASIBILITY_TOLERANCE, max_constraint_violation, violates_inequalities
-    from sphere_nlp.unfold import unfold
+    from sphere_nlp.targets import make_targets
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("mesh")
@@ -75,15 +78,12 @@ def main(argv=None):
     vertices, faces = load_mesh(args.mesh)
     prepared = prepare_mesh(vertices, faces)
     connectivity, faces = prepared.connectivity, prepared.faces
-    x = np.load(runs[-1])["x"]
-    t = connectivity.n_faces
-    excess = np.exp(x[3 * t:])
-    angles = np.exp(x[:3 * t]).reshape(t, 3) + excess[:, None] / 2
+    targets = make_targets(args.mode, prepared.normalised_vertices, faces, connectivity.vertex_degree)
+    angles, excess = AngleNLP(connectivity, targets).unpack(np.load(runs[-1])["x"])
     violation = max_constraint_violation(connectivity, angles, excess)
-    positions, info = unfold(connectivity, angles, excess=excess)
-    positions /= np.linalg.norm(positions, axis=1, keepdims=True)
+    positions, _ = sphere_positions(connectivity, angles, excess)
     certificate = certify(positions, faces)
-    angle_error = float(np.max(np.abs(spherical_angles(positions, faces) - angles)))
+    angle_error = max_angle_error(positions, faces, angles)
     finish_s = time.perf_counter() - clock
 
     solved = (status == "Solve_Succeeded" and violation <= FEASIBILITY_TOLERANCE

@@ -47,10 +47,10 @@ def main(argv=None):
     _, _, start_positions, _ = solve.feasible_start(connectivity, prepared.normalised_vertices, gauge=gauge)
     dropped = solve.independent_vertices(start_positions)
     obtuse = AngleNLP(connectivity, targets).unpack(run["x0"])[0] > solve.OBTUSE_ANGLE
-    values = AngleNLP(connectivity, targets, dropped_vertices=dropped, obtuse_corners=obtuse)._numeric
+    nlp = AngleNLP(connectivity, targets, dropped_vertices=dropped, obtuse_corners=obtuse)
+    values, upper = nlp._numeric, nlp._parts["upper"]          # blocks in _log_chord_parts' order
     n_kept = connectivity.n_vertices - len(dropped)
     families = {"(6)": slice(0, t), "(7)": slice(t, t + n_kept), "(8)": slice(t + n_kept, None)}
-    upper = [(i, j) for j in range(4) for i in range(j + 1)]       # as _log_chord_parts orders them
 
     def blocks(lam_f, multipliers):
         entries = values.hessian(x, lam_f, multipliers)

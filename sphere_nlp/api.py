@@ -244,6 +244,33 @@ class SphericalParameterization:
         write_json(path, self.report())
 
 
+def sphere_positions(connectivity, angles, excess):
+    """Unit-sphere positions unfolded from solved angles, and the unfold statistics.
+
+    All NaN (and no statistics) when the angles cannot be unfolded (non-finite or non-positive),
+    so that the certificate reports the failure.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> from sphere_nlp.connectivity import build_connectivity
+    >>> V, F = octahedron()
+    >>> X, _ = sphere_positions(build_connectivity(F, 6), np.full((8, 3), np.pi / 2), np.full(8, np.pi / 2))
+    >>> bool(np.allclose(np.linalg.norm(X, axis=1), 1))
+    True
+    """
+    if not (np.isfinite(angles).all() and (angles > 0).all()):
+        return np.full((connectivity.n_vertices, 3), np.nan), {}
+    positions, unfold_info = unfold(connectivity, angles, excess=excess)
+    return positions / np.linalg.norm(positions, axis=1, keepdims=True), unfold_info
+
+
+def max_angle_error(positions, faces, angles):
+    """max |spherical corner angle of the positions - solved angle|, inf if not finite."""
+    error = float(np.max(np.abs(spherical_angles(positions, faces) - angles)))
+    return error if np.isfinite(error) else float("inf")
+
+
 def _unit_size(vertices):
     """Vertices centred on their bounding box and scaled into [-1, 1]^3.
 
@@ -384,17 +411,10 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     timings["solve"] -= build_s
     timings["build"] += build_s
 
-    if np.isfinite(solution.angles).all() and not (solution.angles <= 0).any():
-        positions, unfold_info = unfold(connectivity, solution.angles, excess=solution.excess)
-        positions /= np.linalg.norm(positions, axis=1, keepdims=True)
-    else:
-        positions = np.full((connectivity.n_vertices, 3), np.nan)
-        unfold_info = {}
+    positions, unfold_info = sphere_positions(connectivity, solution.angles, solution.excess)
     lap("unfold", "certify")
     certificate = certify(positions, faces)
-    angle_error = float(np.max(np.abs(spherical_angles(positions, faces) - solution.angles)))
-    if not np.isfinite(angle_error):
-        angle_error = float("inf")
+    angle_error = max_angle_error(positions, faces, solution.angles)
     lap("certify")
     timings["total"] = time.perf_counter() - run_started
 

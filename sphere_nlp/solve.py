@@ -473,7 +473,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
 
         def windowed_solve(x_start, name, inequalities=False, recentre=True, log_u_lower=None,
                            warm_from=None, first_options=None):
-            # Bounds log e within EXCESS_WINDOW of the current point act as a trust region: when most
+            # Bounds log e within mode_window of the current point act as a trust region: when most
             # triangles are tiny, scaling all their excesses together barely changes (6)-(8) and, in
             # the angle modes, not the objective either, so IPOPT took huge steps along that flat
             # direction (armadillo.obj, 43k vertices: diverged; with the window 17 iterations). The
