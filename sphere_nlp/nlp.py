@@ -28,6 +28,8 @@ functions symbolically; by default (``evaluation="numpy"``) IPOPT's callbacks re
 arrays in numpy (``_vectorize``, ``_LogChordValues``), which cut the function evaluations of a
 86k-triangle solve from 7.6 s to 2.1 s; ``evaluation="casadi"`` maps them over the triangles in a
 CasADi graph instead, the reference. Tests check both against CasADi's automatic differentiation.
+The area modes hand IPOPT a modified Hessian (``hessian="clipped"``: the exact one less the negative
+part of the term the log unknowns add, which vanishes at the optima; see :class:`AngleNLP`).
 
 The faithful and substituted forms keep (8) in the paper's quotient form, so the Lagrangian Hessian stays block-diagonal per
 triangle (multiplying it out couples the two triangles of every edge and is much slower).
@@ -43,6 +45,8 @@ FORMULATIONS = ("log-chord", "substituted", "faithful")
 # How the log-chord form is evaluated for IPOPT: "numpy" (vectorised over triangles, see
 # _LogChordValues) or "casadi" (the same functions mapped in CasADi's interpreter; the reference).
 EVALUATIONS = ("numpy", "casadi")
+# The Hessian handed to IPOPT by the log-chord form (see AngleNLP's ``hessian``).
+HESSIANS = ("exact", "clipped")
 DEFAULT_FORMULATION = "log-chord"
 
 # Weight of the penalty on the angle sums of the left-out vertices (see AngleNLP).
@@ -426,6 +430,16 @@ class AngleNLP:
         corners (sin alpha_j = sin(u_k + u_l), sin u_j = sin(u_k + u_l + e/2), equal under (6)),
         which stays well-conditioned near alpha = pi; :func:`sphere_nlp.solve.solve_angles` flags
         the corners above pi/2 where a stage starts. Same feasible set and optima either way.
+    hessian : {"exact", "clipped"}
+        log-chord only: the Hessian handed to IPOPT. ``"exact"`` (default) is the Lagrangian's.
+        ``"clipped"`` leaves out the negative part of the term that the logarithmic unknowns add:
+        with x = exp(z) (x = u or e), the Hessian in z is D H_x D + diag(dL/dz), D = diag(x), and
+        ``"clipped"`` adds only max(dL/dz, 0) on the diagonal. dL/dz vanishes at a KKT point
+        wherever no bound is active (and equals the bound's multiplier, >= 0, where a lower bound
+        is), so the optima and IPOPT's fast local convergence are unchanged; away from them that
+        term made the Hessian indefinite on every iteration of the area modes' long middle, and
+        IPOPT's inertia correction added 1e-2..1e-1 times the identity instead, a step more like
+        gradient descent (see :data:`sphere_nlp.solve.AREA_MODE_HESSIAN` for the iterations).
     evaluation : {"numpy", "casadi"}
         log-chord only: how IPOPT's function and derivative values are computed: by numpy over all
         triangles at once (default, faster), or by CasADi's interpreter one triangle at a time
@@ -440,13 +454,15 @@ class AngleNLP:
 
     def __init__(self, connectivity, targets, formulation=DEFAULT_FORMULATION, dropped_vertices=(),
                  angle_margin=1e-4, dropped_penalty=DROPPED_PENALTY, area_form="linear",
-                 obtuse_corners=None, evaluation="numpy"):
+                 obtuse_corners=None, evaluation="numpy", hessian="exact"):
         if formulation not in FORMULATIONS:
             raise ValueError("unknown formulation %r; choose one of %s" % (formulation, FORMULATIONS))
         if evaluation not in EVALUATIONS:
             raise ValueError("evaluation must be one of %s, not %r" % (EVALUATIONS, evaluation))
         if area_form not in ("linear", "log"):
             raise ValueError("area_form must be 'linear' or 'log', not %r" % (area_form,))
+        if hessian not in HESSIANS:
+            raise ValueError("hessian must be one of %s, not %r" % (HESSIANS, hessian))
         self.formulation = formulation
         self.angle_margin = float(angle_margin)
         self.connectivity = connectivity
@@ -465,7 +481,7 @@ class AngleNLP:
             if obtuse_corners.shape != (t, 3):
                 raise ValueError("obtuse_corners must be a (t, 3) boolean array")
             self._parts = self._log_chord_parts(connectivity, targets, kept_vertices, dropped_penalty,
-                                                area_form, obtuse_corners=obtuse_corners)
+                                                area_form, obtuse_corners=obtuse_corners, hessian=hessian)
             self._x = ca.MX.sym("x", n_x)
             self.n_equalities = self._parts["A"].shape[0]
             self.n_inequalities = 0          # (3)-(5) hold by construction (see the module docstring)
@@ -534,7 +550,7 @@ class AngleNLP:
 
     @staticmethod
     def _log_chord_parts(connectivity, targets, kept_vertices, dropped_penalty=0.0, area_form="linear", *,
-                         obtuse_corners):
+                         obtuse_corners, hessian="exact"):
         """The log-chord form as g = A h(z) - b, with h one small function of each triangle's unknowns.
 
         Every term of the objective and of (6)-(8) depends on one triangle's unknowns
@@ -589,6 +605,10 @@ class AngleNLP:
         triangle_jacobian = ca.Function("sphere_nlp_triangle_jac", [z, beta, excess_target, obtuse],
                                         [ca.vec(ca.densify(ca.jacobian(h_sx, z)))])
         hessian_4x4 = ca.densify(ca.hessian(ca.dot(weights, h_sx), z)[0])
+        if hessian == "clipped":
+            # Each unknown z_c belongs to this triangle only, so this is dL/dz of the whole problem.
+            lagrangian_gradient = ca.mtimes(ca.jacobian(h_sx, z).T, weights)
+            hessian_4x4 = hessian_4x4 - ca.diag(ca.fmin(lagrangian_gradient, 0))
         upper = [(i, j) for j in range(4) for i in range(j + 1)]          # column-major upper triangle
         triangle_hessian = ca.Function("sphere_nlp_triangle_hess", [z, beta, excess_target, obtuse, weights],
                                        [ca.vertcat(*[hessian_4x4[i, j] for i, j in upper])])
