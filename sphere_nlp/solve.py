@@ -182,17 +182,21 @@ ABORT_ITERATIONS = 50
 # part of the diagonal term that the log unknowns add, which vanishes at the optima. With the exact
 # Hessian their long middle stretch was a crawl: the Hessian was indefinite at every iterate, IPOPT
 # shifted it by 1e-2..1e-1 times the identity and cut most steps (bunny.off equal-areas: lg(rg)
-# -2.4..-1.2 on all but the last 4 of 88 margin iterations). Clipped, against exact (iterations in
-# all, objective; other local optima of a non-convex problem, lower on 10 of 16 rows): equal-areas
-# knight 156 -> 213 (21.49 -> 22.50), spot 180 -> 118 (54.99 -> 54.53), bunny 178 -> 164
-# (65.11 -> 64.72), max_planck 132 -> 150 (90.85 -> 90.67), cheburashka 229 -> 194
-# (134.26 -> 134.57), hand 314 -> 242 (180.90 -> 180.08), brain 30 -> 30 (same),
-# armadillo_remeshed 573 -> 310 (285.41 -> 285.38; the continuation ends at objective 351
-# instead of 13,310); original-areas knight 169 -> 169 (20.71 -> 20.68), spot 105 -> 103
-# (33.42 -> 33.80), bunny 144 -> 118 (34.95 -> 34.06), max_planck 121 -> 144 (24.89 -> 25.06),
-# cheburashka 246 -> 240 (91.49 -> 90.75), hand 296 -> 287 (152.55 -> 148.11), brain 92 -> 100
-# (60.88 -> 60.05), armadillo_remeshed 598 -> 464 (266.25 -> 272.77). Each iteration is also
-# cheaper (fewer trial factorizations for the inertia correction).
+# -2.4..-1.2 on all but the last 4 of 88 margin iterations). Benchmark rows (benchmarks/results.md,
+# iterations in all and objective, exact at e7cb095 -> clipped with the continuation's re-runs at
+# a22c0ba; other local optima of a non-convex problem, lower on 10 of 16 rows): equal-areas
+# knight 156 -> 174 (21.49 -> 22.01), spot 180 -> 118 (54.99 -> 54.53), bunny 178 -> 154
+# (65.11 -> 64.72), max_planck 132 -> 150 (90.85 -> 90.67), cheburashka 229 -> 231
+# (134.26 -> 134.80), hand 314 -> 258 (180.90 -> 180.08), brain 30 -> 30 (same),
+# armadillo_remeshed 573 -> 310 (285.41 -> 285.38; its continuation ends at objective 351 instead
+# of 13,310); original-areas knight 169 -> 169 (20.71 -> 20.68), spot 105 -> 117 (33.42 -> 33.69),
+# bunny 144 -> 193 (34.95 -> 34.02), max_planck 121 -> 144 (24.89 -> 25.06), cheburashka
+# 246 -> 227 (91.49 -> 88.21), hand 296 -> 287 (152.55 -> 148.11), brain 92 -> 100
+# (60.88 -> 60.05), armadillo_remeshed 598 -> 464 (266.25 -> 272.77); 3,563 -> 3,126 in all. The
+# gain grows with size: armadillo.obj (43k) equal-areas passed the exact Hessian's final objective
+# (1,225.37 after 1,224 margin iterations, 90 minutes) at margin iteration 320, 13 minutes in. Its
+# iterations are cheaper too (fewer trial factorizations for the inertia correction: 1.8 s against
+# 3.8-4.4 s at 43k, each beside one other job).
 AREA_MODE_HESSIAN = "clipped"
 
 # Corners above this angle at the start use the obtuse form of the edge constraints (AngleNLP).
