@@ -318,6 +318,36 @@ def test_area_continuation_walks_the_log_excesses_to_the_targets():
     assert error.mean() < 0.1 * start_error.mean()
 
 
+def test_area_continuation_reruns_a_step_that_ends_far_from_feasible(monkeypatch):
+    # A step whose capped run ends with its equalities off by more than AREA_CONTINUATION_VIOLATION
+    # is run again from there (at most AREA_CONTINUATION_EXTRA_RUNS times). This ellipsoid's steps
+    # end within 4e-4 even when capped at a few iterations, so the bound is lowered to 1e-6 here.
+    from sphere_nlp import solve
+
+    V, F = ellipsoid(2, axes=(1.0, 3.0, 0.4))
+    c = build_connectivity(F, len(V))
+    targets = make_targets("equal-areas", V, F, c.vertex_degree)
+    angles, excess, positions, _ = solve.feasible_start(c, V)
+    dropped = solve.independent_vertices(positions)
+
+    def nlp_for(tg, x):
+        return AngleNLP(c, tg, "log-chord", dropped_vertices=dropped, area_form="log")
+
+    x0 = nlp_for(targets, None).pack(angles, excess)
+    monkeypatch.setattr(solve, "AREA_CONTINUATION_ITERATIONS", 3)
+    monkeypatch.setattr(solve, "AREA_CONTINUATION_VIOLATION", 1e-6)
+    violation, names = {}, {}
+    for extra in (0, 20):
+        monkeypatch.setattr(solve, "AREA_CONTINUATION_EXTRA_RUNS", extra)
+        stages = []
+        x = solve.area_continuation(nlp_for, targets, x0, c.n_faces, dict(solve.DEFAULT_IPOPT_OPTIONS),
+                                    stages=stages)
+        violation[extra] = np.max(np.abs(nlp_for(targets, None).evaluate(x)[1]))
+        names[extra] = [s["name"] for s in stages]
+    assert not any("-more" in n for n in names[0]) and any("-more" in n for n in names[20])
+    assert violation[0] > solve.AREA_CONTINUATION_VIOLATION >= violation[20]
+
+
 @pytest.mark.parametrize("mode", ["equal-areas", "original-areas"])
 def test_area_modes_from_a_far_start(mode):
     # The conformal start of a long ellipsoid crowds its ends, far from the area targets; the area
