@@ -602,12 +602,13 @@ class AngleNLP:
         term = targets.angle_weight * ca.sumsqr(alpha - beta) + targets.area_weight * area_term
         h_sx = ca.vertcat(term, ca.sum1(u) + e / 2 - np.pi, alpha, *log_half_chords)
         triangle = ca.Function("sphere_nlp_triangle", [z, beta, excess_target, obtuse], [h_sx])
+        jacobian_8x4 = ca.jacobian(h_sx, z)
         triangle_jacobian = ca.Function("sphere_nlp_triangle_jac", [z, beta, excess_target, obtuse],
-                                        [ca.vec(ca.densify(ca.jacobian(h_sx, z)))])
+                                        [ca.vec(ca.densify(jacobian_8x4))])
         hessian_4x4 = ca.densify(ca.hessian(ca.dot(weights, h_sx), z)[0])
         if hessian == "clipped":
             # Each unknown z_c belongs to this triangle only, so this is dL/dz of the whole problem.
-            lagrangian_gradient = ca.mtimes(ca.jacobian(h_sx, z).T, weights)
+            lagrangian_gradient = ca.mtimes(jacobian_8x4.T, weights)
             hessian_4x4 = hessian_4x4 - ca.diag(ca.fmin(lagrangian_gradient, 0))
         upper = [(i, j) for j in range(4) for i in range(j + 1)]          # column-major upper triangle
         triangle_hessian = ca.Function("sphere_nlp_triangle_hess", [z, beta, excess_target, obtuse, weights],

@@ -723,10 +723,10 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
             if stages is not None:
                 stages.append(_stage_record("area-continuation-%d/%d%s" % (
                     step, n_steps, "" if attempt == 0 else "-more%d" % attempt), run))
-            if (not np.isfinite(run["x"]).all()
-                    or np.max(np.abs(nlp.evaluate(run["x"])[1])) <= AREA_CONTINUATION_VIOLATION):
+            finite = np.isfinite(run["x"]).all()
+            if not finite or np.max(np.abs(nlp.evaluate(run["x"])[1])) <= AREA_CONTINUATION_VIOLATION:
                 break
-        if not np.isfinite(run["x"]).all():
+        if not finite:
             break
         x = run["x"]
     return x
