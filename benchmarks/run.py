@@ -191,7 +191,7 @@ def main():
     ap.add_argument("--modes", nargs="*", default=["original-angles"])
     ap.add_argument("--cap", type=float, default=900, help="wall-clock cap per case, seconds")
     ap.add_argument("--no-straightforward", action="store_true")
-    ap.add_argument("--loop", action="store_true", help="also run armadillo after one Loop subdivision")
+    ap.add_argument("--loop", action="store_true", help="also run armadillo after one Loop subdivision (in each of --modes)")
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--append", action="store_true",
                     help="add rows to the existing results file (replacing rows of the same cases)")
@@ -214,7 +214,7 @@ def main():
             jobs += [("ellipsoid:%d" % k, "original-angles", "log-chord", None),
                      ("ellipsoid:%d" % k, "original-angles", "faithful", "linear")]
     if args.loop:
-        jobs.append(("loop:" + str(SHARED / "armadillo.obj"), "original-angles", "log-chord", None))
+        jobs += [("loop:" + str(SHARED / "armadillo.obj"), m, "log-chord", None) for m in args.modes]
     for mesh, mode, form, start in jobs:
         r = run_case(mesh, mode, form, args.cap, start)
         # A re-run replaces the earlier row of the same case (so --append can refresh a few cases).
