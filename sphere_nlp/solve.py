@@ -35,6 +35,7 @@ Plain numpy in and out; CasADi stays in :mod:`sphere_nlp.nlp`.
 """
 
 from dataclasses import dataclass, field, replace
+from fractions import Fraction
 
 import numpy as np
 import scipy.sparse as sp
@@ -154,6 +155,13 @@ AREA_CONTINUATION_ITERATIONS = 30
 # bunny original-areas; see benchmarks/results.md, session 12).
 AREA_CONTINUATION_VIOLATION = 0.2
 AREA_CONTINUATION_EXTRA_RUNS = 3
+# If a re-run ends no nearer than the run before it (or the step diverged), the step is tried again
+# with half its length from the last point the walk reached, up to this many times in the whole walk:
+# re-running from a point far from the solution set mostly drifted further (Loop armadillo
+# original-areas, steps of 6: step 5/6 ended at 0.76, its re-runs at 0.60 and 0.88; going on from
+# there, the margin stage never got back). Halved, the walk went 4/6 -> 3/4 (0.46, re-run 0.095)
+# on the same mesh, and 4/6 -> 3/4 -> 5/6 in equal-areas. No smaller benchmark row halves.
+AREA_CONTINUATION_HALVINGS = 3
 
 # The margin stage lifts corners below the margin to it only if that changes none of them by more
 # than this factor in log u (see margin_restart).
@@ -685,7 +693,10 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
     not fade, for targets e'_tau that move from the start's excesses to e' geometrically in steps
     of at most :data:`AREA_CONTINUATION_STEP` per log excess, each with at most
     :data:`AREA_CONTINUATION_ITERATIONS` IPOPT iterations: the point only has to be a good start
-    for (9), which the caller then solves from it.
+    for (9), which the caller then solves from it. A step whose run ends far from the solution set
+    (:data:`AREA_CONTINUATION_VIOLATION`) is re-run from where it ended, and if that gets no nearer,
+    tried again at half the length from the last point reached (:data:`AREA_CONTINUATION_HALVINGS`);
+    the steps are named by their fraction of the way ("area-continuation-3/4", "-more1" for a re-run).
 
     Parameters
     ----------
@@ -713,22 +724,41 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
     # Only a start is needed, so each step is capped (the last iterations of a step refine the
     # weak angle term and are repeated by the next step anyway).
     capped = dict(options, max_iter=min(int(options.get("max_iter", 3000)), AREA_CONTINUATION_ITERATIONS))
-    x = x0
-    for step in range(1, n_steps + 1):
-        tau = step / n_steps
-        excess = np.exp((1 - tau) * start_log + tau * target_log)
+    # Exact fractions, so that tau = k / n_steps exactly when no step was halved.
+    x, reached, step, halvings = x0, Fraction(0), Fraction(1, n_steps), 0
+
+    def violation(nlp, run):
+        if not np.isfinite(run["x"]).all():
+            return np.inf
+        return np.max(np.abs(nlp.evaluate(run["x"])[1]))
+
+    while reached < 1:
+        tau = min(reached + step, Fraction(1))
+        excess = np.exp((1 - float(tau)) * start_log + float(tau) * target_log)
         nlp = nlp_for(replace(targets, excess=excess * (4 * np.pi / excess.sum())), x)
-        for attempt in range(1 + AREA_CONTINUATION_EXTRA_RUNS):
-            run = nlp.solve(x if attempt == 0 else run["x"], options=capped, progress=progress)
-            if stages is not None:
-                stages.append(_stage_record("area-continuation-%d/%d%s" % (
-                    step, n_steps, "" if attempt == 0 else "-more%d" % attempt), run))
-            finite = np.isfinite(run["x"]).all()
-            if not finite or np.max(np.abs(nlp.evaluate(run["x"])[1])) <= AREA_CONTINUATION_VIOLATION:
+        name = "area-continuation-%s" % tau
+        run = nlp.solve(x, options=capped, progress=progress)
+        if stages is not None:
+            stages.append(_stage_record(name, run))
+        ended = violation(nlp, run)
+        for attempt in range(1, AREA_CONTINUATION_EXTRA_RUNS + 1):
+            if not AREA_CONTINUATION_VIOLATION < ended < np.inf:
                 break
-        if not finite:
+            rerun = nlp.solve(run["x"], options=capped, progress=progress)
+            if stages is not None:
+                stages.append(_stage_record("%s-more%d" % (name, attempt), rerun))
+            rerun_ended = violation(nlp, rerun)
+            if rerun_ended >= ended and halvings < AREA_CONTINUATION_HALVINGS:
+                break                           # drifting away: halve the step instead
+            run, ended = rerun, rerun_ended
+        if ended > AREA_CONTINUATION_VIOLATION and halvings < AREA_CONTINUATION_HALVINGS:
+            # A nearer target, from the last good point: going on from a point far from the
+            # solution set only drifted further (see AREA_CONTINUATION_HALVINGS).
+            halvings, step = halvings + 1, step / 2
+            continue
+        if ended == np.inf:
             break
-        x = run["x"]
+        x, reached = run["x"], tau
     return x
 
 

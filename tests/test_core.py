@@ -1,5 +1,7 @@
 """Core pipeline: closed-form cases, constraint residuals, derivatives, formulations, certificates."""
 
+from fractions import Fraction
+
 import numpy as np
 import pytest
 
@@ -320,8 +322,9 @@ def test_area_continuation_walks_the_log_excesses_to_the_targets():
 
 def test_area_continuation_reruns_a_step_that_ends_far_from_feasible(monkeypatch):
     # A step whose capped run ends with its equalities off by more than AREA_CONTINUATION_VIOLATION
-    # is run again from there (at most AREA_CONTINUATION_EXTRA_RUNS times). This ellipsoid's steps
-    # end within 4e-4 even when capped at a few iterations, so the bound is lowered to 1e-6 here.
+    # is run again from there (at most AREA_CONTINUATION_EXTRA_RUNS times) once the halvings are
+    # spent (none here). This ellipsoid's steps end within 4e-4 even when capped at a few
+    # iterations, so the bound is lowered to 1e-6 here.
     from sphere_nlp import solve
 
     V, F = ellipsoid(2, axes=(1.0, 3.0, 0.4))
@@ -336,6 +339,7 @@ def test_area_continuation_reruns_a_step_that_ends_far_from_feasible(monkeypatch
     x0 = nlp_for(targets, None).pack(angles, excess)
     monkeypatch.setattr(solve, "AREA_CONTINUATION_ITERATIONS", 3)
     monkeypatch.setattr(solve, "AREA_CONTINUATION_VIOLATION", 1e-6)
+    monkeypatch.setattr(solve, "AREA_CONTINUATION_HALVINGS", 0)
     violation, names = {}, {}
     for extra in (0, 20):
         monkeypatch.setattr(solve, "AREA_CONTINUATION_EXTRA_RUNS", extra)
@@ -346,6 +350,88 @@ def test_area_continuation_reruns_a_step_that_ends_far_from_feasible(monkeypatch
         names[extra] = [s["name"] for s in stages]
     assert not any("-more" in n for n in names[0]) and any("-more" in n for n in names[20])
     assert violation[0] > solve.AREA_CONTINUATION_VIOLATION >= violation[20]
+
+
+def test_area_continuation_halves_the_step_when_a_rerun_drifts_further(monkeypatch):
+    # The walk's control flow with scripted runs: a step that ends far is re-run while that brings
+    # it nearer; once a re-run ends no nearer, the step is halved and tried from the last point
+    # the walk reached (not from the drifted one).
+    from sphere_nlp import solve
+
+    V, F = ellipsoid(1)
+    c = build_connectivity(F, len(V))
+    targets = make_targets("equal-areas", V, F, c.vertex_degree)
+    t = c.n_faces
+    x0 = np.concatenate([np.zeros(3 * t), np.log(targets.excess) + 7.0])   # two steps of 3.5
+    ends = iter([0.5, 0.3, 0.4,       # tau 1/2: far, nearer, further -> halve
+                 0.01,                # tau 1/4 from x0: near
+                 0.01, 0.01, 0.01])   # tau 1/2, 3/4, 1
+    starts = []
+
+    class ScriptedNLP:
+        violation_of = {}                     # run number (every entry of its x) -> its violation
+
+        def solve(self, x, options=None, progress=None):
+            starts.append(x)
+            self.violation_of[len(starts)] = next(ends)
+            return dict(x=np.full_like(x0, len(starts)), status="Maximum_Iterations_Exceeded",
+                        iterations=30, objective=0.0, time_s=0.0, build_s=0.0)
+
+        def evaluate(self, x):
+            return 0.0, np.array([self.violation_of[int(x[0])]])
+
+    scripted = ScriptedNLP()
+    monkeypatch.setattr(solve, "AREA_CONTINUATION_EXTRA_RUNS", 3)
+    monkeypatch.setattr(solve, "AREA_CONTINUATION_HALVINGS", 1)
+    stages = []
+    x = solve.area_continuation(lambda tg, x: scripted, targets, x0, t, {}, stages=stages)
+    names = [s["name"] for s in stages]
+    assert names == ["area-continuation-1/2", "area-continuation-1/2-more1", "area-continuation-1/2-more2",
+                     "area-continuation-1/4", "area-continuation-1/2", "area-continuation-3/4",
+                     "area-continuation-1"]
+    assert starts[0] is x0 and starts[3] is x0           # the halved step starts where the walk was
+    assert int(starts[1][0]) == 1 and int(starts[2][0]) == 2
+    assert int(x[0]) == 7
+
+
+def test_area_continuation_halves_a_step_that_ends_far_and_retries_from_the_last_good_point(monkeypatch):
+    # With no re-runs, a step that ends further than AREA_CONTINUATION_VIOLATION is tried again with
+    # half the step from the point the walk had reached, AREA_CONTINUATION_HALVINGS times in all; the walk still
+    # ends at the targets (tau = 1). Each run is recorded, so the runs' starts show where it went on from.
+    from sphere_nlp import solve
+
+    V, F = ellipsoid(2, axes=(1.0, 3.0, 0.4))
+    c = build_connectivity(F, len(V))
+    targets = make_targets("equal-areas", V, F, c.vertex_degree)
+    angles, excess, positions, _ = solve.feasible_start(c, V)
+    dropped = solve.independent_vertices(positions)
+    runs = []
+
+    class RecordingNLP(AngleNLP):
+        def solve(self, x0, **kw):
+            run = super().solve(x0, **kw)
+            runs.append((np.array(x0), run["x"]))
+            return run
+
+    def nlp_for(tg, x):
+        return RecordingNLP(c, tg, "log-chord", dropped_vertices=dropped, area_form="log")
+
+    x0 = nlp_for(targets, None).pack(angles, excess)
+    monkeypatch.setattr(solve, "AREA_CONTINUATION_ITERATIONS", 3)
+    monkeypatch.setattr(solve, "AREA_CONTINUATION_VIOLATION", 1e-6)     # every capped step ends "far"
+    monkeypatch.setattr(solve, "AREA_CONTINUATION_EXTRA_RUNS", 0)
+    monkeypatch.setattr(solve, "AREA_CONTINUATION_HALVINGS", 2)
+    stages = []
+    x = solve.area_continuation(nlp_for, targets, x0, c.n_faces, dict(solve.DEFAULT_IPOPT_OPTIONS),
+                                stages=stages)
+    n_steps = int(np.ceil(np.max(np.abs(np.log(excess / targets.excess))) / solve.AREA_CONTINUATION_STEP))
+    taus = [float(Fraction(s["name"].rsplit("-", 1)[1])) for s in stages]
+    # 1/n far, 1/(2n) far, then steps of 1/(4n) from x0 to 1
+    expected = [1 / n_steps, 1 / (2 * n_steps)] + [k / (4 * n_steps) for k in range(1, 4 * n_steps + 1)]
+    np.testing.assert_allclose(taus, expected, rtol=1e-12)
+    assert all(np.array_equal(start, x0) for start, _ in runs[:3])        # retried from the start
+    assert all(np.array_equal(runs[k + 1][0], runs[k][1]) for k in range(2, len(runs) - 1))
+    assert np.array_equal(x, runs[-1][1])
 
 
 @pytest.mark.parametrize("mode", ["equal-areas", "original-areas"])
