@@ -160,7 +160,9 @@ AREA_CONTINUATION_EXTRA_RUNS = 3
 # re-running from a point far from the solution set mostly drifted further (Loop armadillo
 # original-areas, steps of 6: step 5/6 ended at 0.76, its re-runs at 0.60 and 0.88; going on from
 # there, the margin stage never got back). Halved, the walk went 4/6 -> 3/4 (0.46, re-run 0.095)
-# on the same mesh, and 4/6 -> 3/4 -> 5/6 in equal-areas. No smaller benchmark row halves.
+# on the same mesh, and in equal-areas (steps of 1/5; step 1 ended at 0.995, 0.989, 6.3) 4/5 -> 9/10
+# (0.004) -> 1 (0.32, re-run 0.019), the first walk to reach the targets at this size. No smaller
+# benchmark row halves.
 AREA_CONTINUATION_HALVINGS = 3
 
 # The margin stage lifts corners below the margin to it only if that changes none of them by more
