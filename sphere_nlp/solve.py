@@ -164,6 +164,19 @@ AREA_CONTINUATION_EXTRA_RUNS = 3
 # (0.004) -> 1 (0.32, re-run 0.019), the first walk to reach the targets at this size. No smaller
 # benchmark row halves.
 AREA_CONTINUATION_HALVINGS = 3
+# The walk's steps keep every corner u above the margin stage's margin (a corner already below it
+# at the start: above its own start size, less 10%), with the barrier started small (IPOPT
+# mu_init) so that it moves the other corners little. Without the floor the steps collapsed corners
+# towards u = 0 (the Loop armadillo original-areas: 1e-8 rad after step 4/6, 1e-17 after 5/6),
+# where (8) is ill-conditioned and which the margin stage must then keep as its own bounds. With it,
+# armadillo.obj original-areas took 753 iterations (continuation 187, margin 566) to objective
+# 689.70 against 879 (242, 637) to 695.11, in 21 minutes against 31, beside another job each;
+# armadillo_remeshed original-areas 408 against 464 iterations (273.00 against 272.77); the 14
+# area-mode rows up to 10k vertices 2,488 iterations against 2,352, objectives either side
+# (benchmarks/results.md, session 14). mu_init 0.1 (IPOPT's default) instead: armadillo_remeshed
+# 535 iterations, its walk re-run and halved.
+AREA_CONTINUATION_FLOOR = True
+AREA_CONTINUATION_OPTIONS = {"mu_init": 1e-4}
 
 # The margin stage lifts corners below the margin to it only if that changes none of them by more
 # than this factor in log u (see margin_restart).
@@ -697,8 +710,9 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
     :data:`AREA_CONTINUATION_ITERATIONS` IPOPT iterations: the point only has to be a good start
     for (9), which the caller then solves from it. A step whose run ends far from the solution set
     (:data:`AREA_CONTINUATION_VIOLATION`) is re-run from where it ended, and if that gets no nearer,
-    tried again at half the length from the last point reached (:data:`AREA_CONTINUATION_HALVINGS`);
-    the steps are named by their fraction of the way ("area-continuation-3/4", "-more1" for a re-run).
+    tried again at half the length from the last point reached (:data:`AREA_CONTINUATION_HALVINGS`).
+    The steps keep the corners above a floor (:func:`continuation_floor`); they are named by
+    their fraction of the way ("area-continuation-3/4", "-more1" for a re-run).
 
     Parameters
     ----------
@@ -738,15 +752,19 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
         tau = min(reached + step, Fraction(1))
         excess = np.exp((1 - float(tau)) * start_log + float(tau) * target_log)
         nlp = nlp_for(replace(targets, excess=excess * (4 * np.pi / excess.sum())), x)
+        floor, step_options = {}, capped
+        if AREA_CONTINUATION_FLOOR:
+            floor = dict(inequalities=True, log_u_lower=continuation_floor(x0, n_faces, nlp.angle_margin))
+            step_options = dict(capped, **AREA_CONTINUATION_OPTIONS)
         name = "area-continuation-%s" % tau
-        run = nlp.solve(x, options=capped, progress=progress)
+        run = nlp.solve(x, options=step_options, progress=progress, **floor)
         if stages is not None:
             stages.append(_stage_record(name, run))
         ended = violation(nlp, run)
         for attempt in range(1, AREA_CONTINUATION_EXTRA_RUNS + 1):
             if not AREA_CONTINUATION_VIOLATION < ended < np.inf:
                 break
-            rerun = nlp.solve(run["x"], options=capped, progress=progress)
+            rerun = nlp.solve(run["x"], options=step_options, progress=progress, **floor)
             if stages is not None:
                 stages.append(_stage_record("%s-more%d" % (name, attempt), rerun))
             rerun_ended = violation(nlp, rerun)
@@ -762,6 +780,22 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
             break
         x, reached = run["x"], tau
     return x
+
+
+def continuation_floor(x0, n_faces, angle_margin):
+    """Lower bounds on log u for the area continuation's steps (see :data:`AREA_CONTINUATION_FLOOR`).
+
+    ``log(angle_margin)`` for every corner, except those already below it at the start ``x0``,
+    which may not shrink below their own start size less 10%.
+
+    Examples
+    --------
+    >>> continuation_floor(np.log([1.0, 1e-6, 0.5, 1.0]), 1, 1e-4).round(2)
+    array([ -9.21, -13.92,  -9.21])
+    """
+    margin = np.log(angle_margin)
+    log_u = np.asarray(x0, float)[:3 * n_faces]
+    return np.where(log_u < margin, log_u - 0.1, margin)
 
 
 def _stage_record(name, run):

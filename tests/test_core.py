@@ -366,13 +366,15 @@ def test_area_continuation_halves_the_step_when_a_rerun_drifts_further(monkeypat
     ends = iter([0.5, 0.3, 0.4,       # tau 1/2: far, nearer, further -> halve
                  0.01,                # tau 1/4 from x0: near
                  0.01, 0.01, 0.01])   # tau 1/2, 3/4, 1
-    starts = []
+    starts, floors = [], []
 
     class ScriptedNLP:
         violation_of = {}                     # run number (every entry of its x) -> its violation
+        angle_margin = 1e-4
 
-        def solve(self, x, options=None, progress=None):
+        def solve(self, x, options=None, progress=None, **bounds):
             starts.append(x)
+            floors.append((bounds.get("inequalities"), bounds.get("log_u_lower"), options.get("mu_init")))
             self.violation_of[len(starts)] = next(ends)
             return dict(x=np.full_like(x0, len(starts)), status="Maximum_Iterations_Exceeded",
                         iterations=30, objective=0.0, time_s=0.0, build_s=0.0)
@@ -392,6 +394,15 @@ def test_area_continuation_halves_the_step_when_a_rerun_drifts_further(monkeypat
     assert starts[0] is x0 and starts[3] is x0           # the halved step starts where the walk was
     assert int(starts[1][0]) == 1 and int(starts[2][0]) == 2
     assert int(x[0]) == 7
+    # Every run kept the corners above the margin, with a small barrier parameter.
+    x0[0] = np.log(1e-6)                                 # a corner below the margin at the start
+    floors.clear()
+    ends = iter([0.01] * 2)
+    solve.area_continuation(lambda tg, x: scripted, targets, x0, t, {})
+    floor = solve.continuation_floor(x0, t, 1e-4)
+    assert floor[0] == np.log(1e-6) - 0.1 and np.all(floor[1:] == np.log(1e-4))
+    assert all(ineq is True and np.array_equal(lower, floor) and mu == solve.AREA_CONTINUATION_OPTIONS["mu_init"]
+               for ineq, lower, mu in floors) and len(floors) == 2
 
 
 def test_area_continuation_halves_a_step_that_ends_far_and_retries_from_the_last_good_point(monkeypatch):
@@ -432,6 +443,9 @@ def test_area_continuation_halves_a_step_that_ends_far_and_retries_from_the_last
     assert all(np.array_equal(start, x0) for start, _ in runs[:3])        # retried from the start
     assert all(np.array_equal(runs[k + 1][0], runs[k][1]) for k in range(2, len(runs) - 1))
     assert np.array_equal(x, runs[-1][1])
+    # No step shrank a corner below the floor (the margin, or its own start size less 10%).
+    floor = solve.continuation_floor(x0, c.n_faces, 1e-4)
+    assert all(np.all(end[:3 * c.n_faces] >= floor) for _, end in runs)
 
 
 @pytest.mark.parametrize("mode", ["equal-areas", "original-areas"])
