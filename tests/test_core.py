@@ -320,11 +320,9 @@ def test_area_continuation_walks_the_log_excesses_to_the_targets():
     assert error.mean() < 0.1 * start_error.mean()
 
 
-def test_area_continuation_reruns_a_step_that_ends_far_from_feasible(monkeypatch):
-    # A step whose capped run ends with its equalities off by more than AREA_CONTINUATION_VIOLATION
-    # is run again from there (at most AREA_CONTINUATION_EXTRA_RUNS times) once the halvings are
-    # spent (none here). This ellipsoid's steps end within 4e-4 even when capped at a few
-    # iterations, so the bound is lowered to 1e-6 here.
+def _stretched_ellipsoid_start():
+    """An ellipsoid far from equal areas: its connectivity, equal-area targets, and the feasible
+    start's angles, excesses and left-out vertices."""
     from sphere_nlp import solve
 
     V, F = ellipsoid(2, axes=(1.0, 3.0, 0.4))
@@ -332,6 +330,17 @@ def test_area_continuation_reruns_a_step_that_ends_far_from_feasible(monkeypatch
     targets = make_targets("equal-areas", V, F, c.vertex_degree)
     angles, excess, positions, _ = solve.feasible_start(c, V)
     dropped = solve.independent_vertices(positions)
+    return c, targets, angles, excess, dropped
+
+
+def test_area_continuation_reruns_a_step_that_ends_far_from_feasible(monkeypatch):
+    # A step whose capped run ends with its equalities off by more than AREA_CONTINUATION_VIOLATION
+    # is run again from there (at most AREA_CONTINUATION_EXTRA_RUNS times) once the halvings are
+    # spent (none here). This ellipsoid's steps end within 4e-4 even when capped at a few
+    # iterations, so the bound is lowered to 1e-6 here.
+    from sphere_nlp import solve
+
+    c, targets, angles, excess, dropped = _stretched_ellipsoid_start()
 
     def nlp_for(tg, x):
         return AngleNLP(c, tg, "log-chord", dropped_vertices=dropped, area_form="log")
@@ -411,11 +420,7 @@ def test_area_continuation_halves_a_step_that_ends_far_and_retries_from_the_last
     # ends at the targets (tau = 1). Each run is recorded, so the runs' starts show where it went on from.
     from sphere_nlp import solve
 
-    V, F = ellipsoid(2, axes=(1.0, 3.0, 0.4))
-    c = build_connectivity(F, len(V))
-    targets = make_targets("equal-areas", V, F, c.vertex_degree)
-    angles, excess, positions, _ = solve.feasible_start(c, V)
-    dropped = solve.independent_vertices(positions)
+    c, targets, angles, excess, dropped = _stretched_ellipsoid_start()
     runs = []
 
     class RecordingNLP(AngleNLP):
