@@ -158,20 +158,22 @@ AREA_CONTINUATION_EXTRA_RUNS = 3
 # If a re-run ends no nearer than the run before it (or the step diverged), the step is tried again
 # with half its length from the last point the walk reached, up to this many times in the whole walk:
 # re-running from a point far from the solution set mostly drifted further (Loop armadillo
-# original-areas, steps of 6: step 5/6 ended at 0.76, its re-runs at 0.60 and 0.88; going on from
-# there, the margin stage never got back). Halved, the walk went 4/6 -> 3/4 (0.46, re-run 0.095)
-# on the same mesh, and in equal-areas (steps of 1/5; step 1 ended at 0.995, 0.989, 6.3) 4/5 -> 9/10
-# (0.004) -> 1 (0.32, re-run 0.019), the first walk to reach the targets at this size. No smaller
-# benchmark row halves.
+# original-areas, steps of 1/5: the last step ended at 0.76, its re-runs at 0.60 and 0.88; going on
+# from there, the margin stage never got back). Halved, the walk went 4/5 -> 9/10 (0.46, re-run
+# 0.095) on the same mesh, and in equal-areas (the last step ended at 0.995, 0.989, 6.3) 4/5 -> 9/10
+# (0.004) -> 1 (0.32, re-run 0.019), the first walk to reach the targets at this size. With the
+# floor below as well, original-areas reached them too (1 at 0.61, 2.8; 9/10 0.51, 0.074; 1 at
+# 0.109). No smaller benchmark row halves.
 AREA_CONTINUATION_HALVINGS = 3
 # The walk's steps keep every corner u above the margin stage's margin (a corner already below it
 # at the start: above its own start size, less 10%), with the barrier started small (IPOPT
 # mu_init) so that it moves the other corners little. Without the floor the steps collapsed corners
-# towards u = 0 (the Loop armadillo original-areas: 1e-8 rad after step 4/6, 1e-17 after 5/6),
+# towards u = 0 (the Loop armadillo original-areas: 1e-8 rad after step 4/5, 1e-17 after 1),
 # where (8) is ill-conditioned and which the margin stage must then keep as its own bounds. With it,
 # armadillo.obj original-areas took 753 iterations (continuation 187, margin 566) to objective
 # 689.70 against 879 (242, 637) to 695.11, in 21 minutes against 31, beside another job each;
-# armadillo_remeshed original-areas 408 against 464 iterations (273.00 against 272.77); the 14
+# nefertiti.obj original-areas 429 against 528 (340.88 against 336.99); armadillo_remeshed
+# original-areas 408 against 464 iterations (273.00 against 272.77); the 14
 # area-mode rows up to 10k vertices 2,488 iterations against 2,352, objectives either side
 # (benchmarks/results.md, session 14). mu_init 0.1 (IPOPT's default) instead: armadillo_remeshed
 # 535 iterations, its walk re-run and halved.
