@@ -171,11 +171,11 @@ AREA_CONTINUATION_HALVINGS = 3
 # towards u = 0 (the Loop armadillo original-areas: 1e-8 rad after step 4/5, 1e-17 after 1),
 # where (8) is ill-conditioned and which the margin stage must then keep as its own bounds. With it,
 # armadillo.obj original-areas took 753 iterations (continuation 187, margin 566) to objective
-# 689.70 against 879 (242, 637) to 695.11, in 21 minutes against 31, beside another job each;
+# 689.70 against 879 (242, 637) to 695.11, in 20 minutes against 31, beside another job each;
 # nefertiti.obj original-areas 429 against 528 (340.88 against 336.99); armadillo_remeshed
-# original-areas 408 against 464 iterations (273.00 against 272.77); the 14
-# area-mode rows up to 10k vertices 2,488 iterations against 2,352, objectives either side
-# (benchmarks/results.md, session 14). mu_init 0.1 (IPOPT's default) instead: armadillo_remeshed
+# original-areas 408 against 464 iterations (273.00 against 272.77); the 14 area-mode rows up to
+# 10k vertices 2,488 iterations against 2,352, objectives either side (benchmarks/results.md,
+# session 14). mu_init 0.1 (IPOPT's default) instead: armadillo_remeshed
 # 535 iterations, its walk re-run and halved.
 AREA_CONTINUATION_FLOOR = True
 AREA_CONTINUATION_OPTIONS = {"mu_init": 1e-4}
