@@ -100,7 +100,7 @@ class SphericalParameterization:
     peak_rss_mb : float
     start : str
         The solve's starting point: "conformal", "conformal-untangled", "embedding",
-        "embedding-uncentred" or "linear".
+        "embedding-uncentred", "linear" or "given" (positions passed as ``start``).
     """
 
     vertices: np.ndarray
@@ -271,6 +271,23 @@ def max_angle_error(positions, faces, angles):
     return error if np.isfinite(error) else float("inf")
 
 
+def _start_positions(start, prepared):
+    """Start positions given per input vertex, in the repaired numbering and checked (UsageError)."""
+    start = np.asarray(start, dtype=float)
+    vertex_map = prepared.vertex_map
+    if start.shape != (len(vertex_map), 3):
+        raise errors.UsageError("start positions must be a (%d, 3) array (one row per input vertex), not %s"
+                                % (len(vertex_map), start.shape))
+    positions = np.zeros((prepared.connectivity.n_vertices, 3))
+    kept = vertex_map >= 0
+    positions[vertex_map[kept]] = start[kept]
+    certificate = certify(positions, prepared.faces)
+    if not certificate.valid:
+        raise errors.UsageError("start positions are not a valid spherical map of the mesh: "
+                                + certificate.reason)
+    return positions
+
+
 def _unit_size(vertices):
     """Vertices centred on their bounding box and scaled into [-1, 1]^3.
 
@@ -329,11 +346,14 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         Called once per IPOPT iteration.
     on_stage : callable(name), optional
         Called as each stage begins: "load", "build", "solve", "unfold", "certify".
-    start : {"auto", "conformal", "embedding", "linear"}, optional
+    start : {"auto", "conformal", "embedding", "linear"} or (n_input, 3) array, optional
         Starting point of the solve: a valid spherical triangulation, either the Mobius-centred
         conformal map when it is bijective or the convex embedding (``auto``, default for log-chord;
         see :func:`sphere_nlp.solve.starting_positions`), or the paper's linear least-squares start
-        (default for faithful and substituted).
+        (default for faithful and substituted). An array gives the start's unit-sphere positions,
+        one row per input vertex, which must form a valid spherical map of the mesh: an earlier
+        result's ``vertices[vertex_map]``, say, or a coarser mesh's solution carried over to its
+        subdivision (:func:`sphere_nlp.hierarchy.prolong_to_subdivision`).
     check : bool
         Raise :class:`SolveError` / :class:`CertificateError` on failure (default). With False the
         result is returned with ``success=False`` instead.
@@ -401,6 +421,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     targets = make_targets(target, prepared.normalised_vertices, faces, connectivity.vertex_degree,
                            angle_weight=angle_weight, area_weight=area_weight,
                            target_angles=target_angles, target_excess=target_excess)
+    if start is not None and not isinstance(start, str):
+        start = _start_positions(start, prepared)
     lap("build", "solve")
     solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
                             max_iter=max_iter, max_time=max_time, progress=progress,

@@ -437,6 +437,21 @@ def _area_centred_start(connectivity, vertices, kind):
     return positions, "embedding-uncentred"
 
 
+def _checked_start_positions(connectivity, positions):
+    """``positions`` as a float array if they are a certified spherical triangulation of the mesh,
+    else ValueError naming what is wrong."""
+    from .certify import certify
+
+    positions = np.asarray(positions, dtype=float)
+    if positions.shape != (connectivity.n_vertices, 3):
+        raise ValueError("start positions must be a (%d, 3) array, not %s"
+                         % (connectivity.n_vertices, positions.shape))
+    certificate = certify(positions, connectivity.faces)
+    if not certificate.valid:
+        raise ValueError("start positions are not a valid spherical map of the mesh: " + certificate.reason)
+    return positions
+
+
 def feasible_start(connectivity, vertices=None, kind="auto", gauge="area"):
     """Angles and excesses of a valid spherical triangulation of the mesh, and its positions.
 
@@ -474,10 +489,12 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     progress : callable(stage, iteration, objective, violation, elapsed), optional
     vertices : (n, 3) array, optional
         3D positions (same numbering as ``connectivity``); used for the starting point.
-    start : {"auto", "conformal", "embedding", "linear"}, optional
+    start : {"auto", "conformal", "embedding", "linear"} or (n, 3) array, optional
         Starting point: the angles of a valid spherical triangulation (see
         :func:`starting_positions`), or the paper's linear least-squares start. Default "auto"
-        for log-chord, "linear" for the paper's forms.
+        for log-chord, "linear" for the paper's forms. An array is a certified spherical
+        triangulation of the mesh to start from (unit vectors, ``connectivity``'s numbering), for
+        instance a coarser mesh's solution carried over (:mod:`sphere_nlp.hierarchy`).
 
     Returns
     -------
@@ -503,9 +520,18 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     stages = []
     if start is None:
         start = "auto" if formulation == "log-chord" else "linear"
-    if start not in START_POINTS:
+    given_positions = None
+    if not isinstance(start, str):
+        given_positions, start = _checked_start_positions(connectivity, start), "given"
+    elif start not in START_POINTS:
         raise ValueError("start must be one of %s" % (START_POINTS,))
-    if start == "linear":
+    if given_positions is not None:
+        from .certify import signed_solid_angles, spherical_angles
+
+        init_angles = spherical_angles(given_positions, connectivity.faces)
+        init_excess = signed_solid_angles(given_positions, connectivity.faces)
+        start_positions, start_kind = given_positions, "given"
+    elif start == "linear":
         init_angles, init_excess = linear_initial_guess(connectivity, targets)
         start_kind = "linear"
     else:
