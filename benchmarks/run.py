@@ -3,12 +3,15 @@
     python benchmarks/run.py                  # all cases, writes benchmarks/results.{json,md}
     python benchmarks/run.py --quick          # the meshes up to ~8k vertices only
     python benchmarks/run.py --cases knight.off spot.obj --modes original-angles
+    python benchmarks/run.py --no-straightforward --cases --loop-from-coarse --modes original-areas
 
 Each case runs in its own subprocess (so peak memory is per case) with a wall-clock cap; a case
 that hits the cap is recorded as such, with the stage, iteration, objective and constraint violation
 it had reached. The "straightforward" rows run the paper's formulation
 verbatim (faithful, linear least-squares start) on ellipsoids of 2,562 and 10,242 vertices for the
-speed-up ratio against the default path.
+speed-up ratio against the default path. ``--loop`` adds armadillo after one Loop subdivision (172,966
+vertices); ``--loop-from-coarse`` the same mesh started from armadillo's own solution in the same mode
+(:mod:`sphere_nlp.hierarchy`), its row's total time including that coarse solve.
 """
 
 import argparse
