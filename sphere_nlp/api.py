@@ -272,7 +272,7 @@ def max_angle_error(positions, faces, angles):
 
 
 def _start_positions(start, prepared):
-    """Start positions given per input vertex, in the repaired numbering and checked (UsageError)."""
+    """Start positions given per input vertex, in the repaired numbering (the solve certifies them)."""
     start = np.asarray(start, dtype=float)
     vertex_map = prepared.vertex_map
     if start.shape != (len(vertex_map), 3):
@@ -281,10 +281,6 @@ def _start_positions(start, prepared):
     positions = np.zeros((prepared.connectivity.n_vertices, 3))
     kept = vertex_map >= 0
     positions[vertex_map[kept]] = start[kept]
-    certificate = certify(positions, prepared.faces)
-    if not certificate.valid:
-        raise errors.UsageError("start positions are not a valid spherical map of the mesh: "
-                                + certificate.reason)
     return positions
 
 
@@ -377,7 +373,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     DegenerateFaceError
         A face whose smallest corner angle is below 1e-10 rad (zero area).
     UsageError
-        Unknown target mode or formulation, bad weights or custom targets.
+        Unknown target mode or formulation, bad weights or custom targets, start positions that are
+        not a valid spherical map of the mesh.
     SolveError
         IPOPT failed or hit ``max_iter`` / ``max_time`` (only with ``check=True``).
     CertificateError

@@ -439,17 +439,25 @@ def _area_centred_start(connectivity, vertices, kind):
 
 def _checked_start_positions(connectivity, positions):
     """``positions`` as a float array if they are a certified spherical triangulation of the mesh,
-    else ValueError naming what is wrong."""
+    else UsageError naming what is wrong."""
     from .certify import certify
+    from .errors import UsageError
 
     positions = np.asarray(positions, dtype=float)
     if positions.shape != (connectivity.n_vertices, 3):
-        raise ValueError("start positions must be a (%d, 3) array, not %s"
+        raise UsageError("start positions must be a (%d, 3) array, not %s"
                          % (connectivity.n_vertices, positions.shape))
     certificate = certify(positions, connectivity.faces)
     if not certificate.valid:
-        raise ValueError("start positions are not a valid spherical map of the mesh: " + certificate.reason)
+        raise UsageError("start positions are not a valid spherical map of the mesh: " + certificate.reason)
     return positions
+
+
+def _angles_and_excess(positions, faces):
+    """Corner angles (t, 3) and excesses (t,) of a valid spherical triangulation."""
+    from .certify import signed_solid_angles, spherical_angles
+
+    return spherical_angles(positions, faces), signed_solid_angles(positions, faces)
 
 
 def feasible_start(connectivity, vertices=None, kind="auto", gauge="area"):
@@ -464,11 +472,8 @@ def feasible_start(connectivity, vertices=None, kind="auto", gauge="area"):
     positions : (n, 3) array
     kind : str
     """
-    from .certify import signed_solid_angles, spherical_angles
-
     positions, kind = starting_positions(connectivity, vertices, kind, gauge)
-    return (spherical_angles(positions, connectivity.faces),
-            signed_solid_angles(positions, connectivity.faces), positions, kind)
+    return (*_angles_and_excess(positions, connectivity.faces), positions, kind)
 
 
 def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_options=None,
@@ -526,10 +531,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     elif start not in START_POINTS:
         raise ValueError("start must be one of %s" % (START_POINTS,))
     if given_positions is not None:
-        from .certify import signed_solid_angles, spherical_angles
-
-        init_angles = spherical_angles(given_positions, connectivity.faces)
-        init_excess = signed_solid_angles(given_positions, connectivity.faces)
+        init_angles, init_excess = _angles_and_excess(given_positions, connectivity.faces)
         start_positions, start_kind = given_positions, "given"
     elif start == "linear":
         init_angles, init_excess = linear_initial_guess(connectivity, targets)
