@@ -15,11 +15,7 @@ from sphere_nlp.targets import MODES, make_targets
 from sphere_nlp.unfold import half_chords_squared
 
 from conftest import MODELS
-
-
-def ellipsoid(subdivisions=2, axes=(1.0, 1.6, 0.7)):
-    V, F = icosphere(subdivisions)
-    return V * np.array(axes), F
+from meshgen import ellipsoid
 
 
 @pytest.mark.parametrize("shape, angle", [(tetrahedron, 2 * np.pi / 3), (octahedron, np.pi / 2)])

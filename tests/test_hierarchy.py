@@ -12,10 +12,7 @@ from sphere_nlp.shapes import cylinder, icosphere
 from sphere_nlp.solve import max_constraint_violation
 from sphere_nlp.connectivity import build_connectivity
 
-
-def ellipsoid(subdivisions=2, axes=(1.0, 1.6, 0.7)):
-    V, F = icosphere(subdivisions)
-    return V * np.array(axes), F
+from meshgen import ellipsoid
 
 
 def input_positions(result):
