@@ -7,7 +7,7 @@
 
 Each case runs in its own subprocess (so peak memory is per case) with a wall-clock cap; a case
 that hits the cap is recorded as such, with the stage, iteration, objective and constraint violation
-it had reached. The "straightforward" rows run the paper's formulation
+it had reached (a line a minute says the same while it runs). The "straightforward" rows run the paper's formulation
 verbatim (faithful, linear least-squares start) on ellipsoids of 2,562 and 10,242 vertices for the
 speed-up ratio against the default path. ``--loop`` adds armadillo after one Loop subdivision (172,966
 vertices); ``--loop-from-coarse`` the same mesh started from armadillo's own solution in the same mode
@@ -46,20 +46,6 @@ if mesh.startswith("ellipsoid:"):
     V, F = icosphere(int(mesh.split(":")[1]))
     mesh = (V * np.array([1.0, 1.6, 0.7]), F)
 t0 = time.perf_counter()
-start, coarse = spec.get("start"), None
-if isinstance(mesh, str) and mesh.startswith(("loop:", "loop-from-coarse:")):
-    import trimesh
-    m = trimesh.load(mesh.split(":", 1)[1], process=False, force="mesh")
-    if mesh.startswith("loop-from-coarse:"):
-        # The hierarchy: solve the mesh itself, then start its subdivision from that solution.
-        from sphere_nlp.hierarchy import prolong_to_subdivision
-        coarse = sphere_nlp.parameterize((m.vertices, m.faces), target=spec["mode"],
-                                         formulation=spec["formulation"], check=True)
-        coarse_positions = coarse.vertices[coarse.vertex_map]
-    V, F = trimesh.remesh.subdivide_loop(m.vertices, m.faces, iterations=1)
-    mesh = (V, F)
-    if coarse is not None:
-        start = prolong_to_subdivision(coarse_positions, F)
 # Where the run is, for the parent to report if the case hits its cap: the stages so far with their
 # iteration counts and the current stage's last iteration (rewritten at most every 2 s).
 seen = {"stages": [], "written": 0.0}
@@ -75,6 +61,21 @@ def progress(stage, iteration, objective, violation, elapsed):
         with open(spec["progress_file"] + ".tmp", "w") as f:
             json.dump(snapshot, f)
         os.replace(spec["progress_file"] + ".tmp", spec["progress_file"])
+start, coarse = spec.get("start"), None
+if isinstance(mesh, str) and mesh.startswith(("loop:", "loop-from-coarse:")):
+    import trimesh
+    m = trimesh.load(mesh.split(":", 1)[1], process=False, force="mesh")
+    if mesh.startswith("loop-from-coarse:"):
+        # The hierarchy: solve the mesh itself, then start its subdivision from that solution.
+        from sphere_nlp.hierarchy import prolong_to_subdivision
+        coarse = sphere_nlp.parameterize((m.vertices, m.faces), target=spec["mode"],
+                                         formulation=spec["formulation"], check=True,
+                                         progress=lambda stage, *a: progress("coarse " + stage, *a))
+        coarse_positions = coarse.vertices[coarse.vertex_map]
+    V, F = trimesh.remesh.subdivide_loop(m.vertices, m.faces, iterations=1)
+    mesh = (V, F)
+    if coarse is not None:
+        start = prolong_to_subdivision(coarse_positions, F)
 r = sphere_nlp.parameterize(mesh, target=spec["mode"], formulation=spec["formulation"],
                             start=start, check=False, progress=progress)
 out = r.report()
@@ -89,26 +90,57 @@ print("RESULT " + json.dumps(out))
 """
 
 
-def run_case(mesh, mode, formulation, cap_s, start=None):
+def read_progress(path):
+    """The worker's last progress snapshot, or None (not written yet)."""
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return None
+
+
+def progress_text(snapshot, elapsed_s):
+    """One line on where a running case is: minutes, stage, iteration, objective, violation."""
+    stage, iteration = snapshot["stages"][-1]
+    return "%.1f min: %s iteration %d, objective %.6g, violation %.1e" % (
+        elapsed_s / 60, stage, iteration, snapshot["objective"], snapshot["violation"])
+
+
+def run_case(mesh, mode, formulation, cap_s, start=None, report_every_s=60.0):
+    """Run one case in a subprocess; its report (dict), or a row saying it hit the cap or crashed.
+
+    While it runs, a line every ``report_every_s`` seconds says where it is (once it has started
+    iterating)."""
     with tempfile.TemporaryDirectory() as scratch:
         progress_file = os.path.join(scratch, "progress.json")
         spec = json.dumps({"mesh": mesh, "mode": mode, "formulation": formulation, "start": start,
                            "progress_file": progress_file})
         t0 = time.perf_counter()
-        try:
-            p = subprocess.run([sys.executable, "-c", WORKER % {"root": str(ROOT)}, spec], capture_output=True,
-                               text=True, timeout=cap_s)
-        except subprocess.TimeoutExpired:
-            row = {"mesh": mesh, "mode": mode, "formulation": formulation, "status": "cap %d s hit" % cap_s,
-                   "wall_s": time.perf_counter() - t0}
-            if os.path.isfile(progress_file):
-                with open(progress_file) as f:
-                    row["progress"] = json.load(f)
-            return row
-    line = [l for l in p.stdout.splitlines() if l.startswith("RESULT ")]
+        p = subprocess.Popen([sys.executable, "-c", WORKER % {"root": str(ROOT)}, spec],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        while True:
+            left = cap_s - (time.perf_counter() - t0)
+            try:
+                # communicate() may be retried after a timeout without losing output.
+                stdout, stderr = p.communicate(timeout=max(0.0, min(report_every_s, left)))
+                break
+            except subprocess.TimeoutExpired:
+                snapshot, elapsed_s = read_progress(progress_file), time.perf_counter() - t0
+                if elapsed_s < cap_s:
+                    if snapshot:
+                        print("  ... %s" % progress_text(snapshot, elapsed_s), flush=True)
+                    continue
+                p.kill()
+                p.communicate()
+                row = {"mesh": mesh, "mode": mode, "formulation": formulation, "status": "cap %d s hit" % cap_s,
+                       "wall_s": time.perf_counter() - t0}
+                if snapshot:
+                    row["progress"] = snapshot
+                return row
+    line = [l for l in stdout.splitlines() if l.startswith("RESULT ")]
     if not line:
         return {"mesh": mesh, "mode": mode, "formulation": formulation, "status": "crashed",
-                "error": p.stderr.strip().splitlines()[-1:] if p.stderr else "", "wall_s": time.perf_counter() - t0}
+                "error": stderr.strip().splitlines()[-1:] if stderr else "", "wall_s": time.perf_counter() - t0}
     out = json.loads(line[0][7:])
     out.update(mesh=mesh, mode=mode, formulation=formulation)
     return out
@@ -140,9 +172,16 @@ def earlier_notes(path_md):
 
 
 def progress_iterations(row):
-    """'>= N' for a capped case: the IPOPT iterations its stages had reached, else ''."""
+    """'>= N' for a capped case: the IPOPT iterations its stages had reached ('>= coarse + fine' if
+    it was started from its parent's solution), else ''."""
     stages = row.get("progress", {}).get("stages")
-    return ">= %d" % sum(iteration for _, iteration in stages) if stages else ""
+    if not stages:
+        return ""
+    coarse = sum(iteration for stage, iteration in stages if stage.startswith("coarse "))
+    fine = sum(iteration for stage, iteration in stages if not stage.startswith("coarse "))
+    if any(stage.startswith("coarse ") for stage, _ in stages):
+        return ">= %d + %d" % (coarse, fine)
+    return ">= %d" % fine
 
 
 def iterations_text(row):
