@@ -1,0 +1,59 @@
+"""benchmarks/run.py: the rows it records for finished, hierarchical and capped cases."""
+
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import MODELS
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+import run as bench  # noqa: E402  (the benchmark script, imported as a module)
+
+CYLINDER = str(MODELS / "cylinder.off")
+
+
+def test_finished_case_row_is_certified_and_progress_is_reported(capsys):
+    # A line per report interval while the case runs; the row is the worker's own report.
+    row = bench.run_case(CYLINDER, "original-areas", "log-chord", cap_s=120, report_every_s=0.2)
+    assert row["status"] == "Solve_Succeeded"
+    assert row["certificate"]["valid"] and row["certificate"]["flipped"] == 0
+    assert row["max_constraint_violation"] < 1e-8
+    assert row["iterations"] == sum(stage["iterations"] for stage in row["stages"]) > 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("  ... ")]
+    assert all(" iteration " in line and "objective" in line for line in lines)
+
+
+def test_loop_from_coarse_row_counts_the_coarse_solve():
+    row = bench.run_case("loop-from-coarse:" + CYLINDER, "equal-areas", "log-chord", cap_s=120)
+    assert row["certificate"]["valid"] and row["max_constraint_violation"] < 1e-8
+    assert row["vertices"] > row["coarse"]["vertices"] == 86          # 1-to-4 subdivision of the cylinder
+    assert row["timings_s"]["total"] >= row["timings_s"]["fine_total"] + row["coarse"]["total_s"] * 0.99
+    assert bench.iterations_text(row) == "%d + %d" % (row["coarse"]["iterations"], row["iterations"])
+
+
+def test_capped_case_is_recorded_as_capped():
+    row = bench.run_case(CYLINDER, "original-areas", "log-chord", cap_s=0.01)
+    assert row["status"].startswith("cap ") and "certificate" not in row
+    assert row["wall_s"] < 30
+
+
+def test_capped_hierarchy_row_says_where_each_level_was():
+    row = {"status": "cap 9000 s hit",
+           "progress": {"stages": [["coarse area-continuation", 30], ["coarse margin", 700],
+                                   ["area-continuation", 30], ["margin", 12]],
+                        "objective": 2.5, "violation": 1e-3, "elapsed_s": 9000.0}}
+    assert bench.iterations_text(row) == ">= 730 + 42"
+    assert bench.status_text(row) == "cap 9000 s hit (in margin at iteration 12: objective 2.5, violation 1.0e-03)"
+    plain = {"status": "cap 5 s hit", "progress": {"stages": [["margin", 7]], "objective": 1.0,
+                                                   "violation": 0.0, "elapsed_s": 5.0}}
+    assert bench.iterations_text(plain) == ">= 7"
+    assert bench.progress_text(plain["progress"], 90.0) == "1.5 min: margin iteration 7, objective 1, violation 0.0e+00"
+
+
+@pytest.mark.parametrize("mesh, label", [("/x/armadillo.obj", "armadillo.obj"), ("ellipsoid:4", "ellipsoid:4"),
+                                         ("loop:/x/armadillo.obj", "loop:armadillo.obj"),
+                                         ("loop-from-coarse:/x/armadillo.obj",
+                                          "loop:armadillo.obj from its parent's solution")])
+def test_mesh_labels(mesh, label):
+    assert bench.mesh_label(mesh) == label
