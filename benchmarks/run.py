@@ -4,6 +4,7 @@
     python benchmarks/run.py --quick          # the meshes up to ~8k vertices only
     python benchmarks/run.py --cases knight.off spot.obj --modes original-angles
     python benchmarks/run.py --no-straightforward --cases --loop-from-coarse --modes original-areas
+    python benchmarks/run.py ... --max-time 1200 --on-limit project   # stop each stage at 20 min, certified
 
 Each case runs in its own subprocess (so peak memory is per case) with a wall-clock cap; a case
 that hits the cap is recorded as such, with the stage, iteration, objective and constraint violation
@@ -70,6 +71,7 @@ if isinstance(mesh, str) and mesh.startswith(("loop:", "loop-from-coarse:")):
         from sphere_nlp.hierarchy import prolong_to_subdivision
         coarse = sphere_nlp.parameterize((m.vertices, m.faces), target=spec["mode"],
                                          formulation=spec["formulation"], check=True,
+                                         max_time=spec.get("max_time"), on_limit=spec.get("on_limit", "fail"),
                                          progress=lambda stage, *a: progress("coarse " + stage, *a))
         coarse_positions = coarse.vertices[coarse.vertex_map]
     V, F = trimesh.remesh.subdivide_loop(m.vertices, m.faces, iterations=1)
@@ -77,13 +79,17 @@ if isinstance(mesh, str) and mesh.startswith(("loop:", "loop-from-coarse:")):
     if coarse is not None:
         start = prolong_to_subdivision(coarse_positions, F)
 r = sphere_nlp.parameterize(mesh, target=spec["mode"], formulation=spec["formulation"],
-                            start=start, check=False, progress=progress)
+                            start=start, check=False, progress=progress,
+                            max_time=spec.get("max_time"), on_limit=spec.get("on_limit", "fail"))
 out = r.report()
 out["wall_s"] = time.perf_counter() - t0
+if spec.get("max_time") is not None:
+    out["max_time_s"], out["on_limit"] = spec["max_time"], spec.get("on_limit", "fail")
 if coarse is not None:
     # The row's total is the whole job: the coarse solve, the subdivision and the fine solve.
     out["coarse"] = {"vertices": int(len(coarse.vertices)), "iterations": int(coarse.iterations),
-                     "objective": float(coarse.objective), "total_s": float(coarse.timings["total"])}
+                     "objective": float(coarse.objective), "total_s": float(coarse.timings["total"]),
+                     "converged": bool(coarse.converged), "status": coarse.status}
     out["timings_s"]["fine_total"] = out["timings_s"]["total"]
     out["timings_s"]["total"] = out["wall_s"]
 print("RESULT " + json.dumps(out))
@@ -106,15 +112,16 @@ def progress_text(snapshot, elapsed_s):
         elapsed_s / 60, stage, iteration, snapshot["objective"], snapshot["violation"])
 
 
-def run_case(mesh, mode, formulation, cap_s, start=None, report_every_s=60.0):
+def run_case(mesh, mode, formulation, cap_s, start=None, report_every_s=60.0, max_time=None, on_limit="fail"):
     """Run one case in a subprocess; its report (dict), or a row saying it hit the cap or crashed.
 
     While it runs, a line every ``report_every_s`` seconds says where it is (once it has started
-    iterating)."""
+    iterating). ``max_time`` and ``on_limit`` are passed to :func:`sphere_nlp.parameterize` (a limit
+    per IPOPT stage, and what a stopped main stage yields)."""
     with tempfile.TemporaryDirectory() as scratch:
         progress_file = os.path.join(scratch, "progress.json")
         spec = json.dumps({"mesh": mesh, "mode": mode, "formulation": formulation, "start": start,
-                           "progress_file": progress_file})
+                           "progress_file": progress_file, "max_time": max_time, "on_limit": on_limit})
         t0 = time.perf_counter()
         p = subprocess.Popen([sys.executable, "-c", WORKER % {"root": str(ROOT)}, spec],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -194,8 +201,18 @@ def iterations_text(row):
 
 
 def status_text(row):
-    """The status cell; a capped case also says where it was (stage, iteration, objective, violation)."""
+    """The status cell; a capped case also says where it was (stage, iteration, objective, violation);
+    a solve stopped by its per-stage time limit and projected onto the constraints says so (and so
+    does the coarse solve of a hierarchy row)."""
     status = row.get("status", "")
+    stopped = []
+    if row.get("coarse") and row["coarse"].get("converged") is False:
+        stopped.append("coarse")
+    if row.get("success") and row.get("converged") is False:
+        stopped.append("fine" if row.get("coarse") else "solve")
+    if stopped:
+        status += " (%s stopped at the %g-s stage limit and projected: not optimal)" % (
+            " and ".join(stopped), row.get("max_time_s", float("nan")))
     progress = row.get("progress")
     if progress and progress.get("stages"):
         stage, iteration = progress["stages"][-1]
@@ -263,6 +280,11 @@ def main():
     ap.add_argument("--loop-from-coarse", action="store_true",
                     help="also run the Loop armadillo started from armadillo's own solution (sphere_nlp.hierarchy); "
                          "its total time includes that coarse solve")
+    ap.add_argument("--max-time", type=float, metavar="S",
+                    help="IPOPT wall-clock limit per stage, passed to sphere_nlp.parameterize (with --on-limit)")
+    ap.add_argument("--on-limit", choices=("fail", "project"), default="fail",
+                    help="what a main stage stopped by --max-time yields: a failure, or its last iterate projected "
+                         "onto the constraints (certified, not optimal; the row says so)")
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--append", action="store_true",
                     help="add rows to the existing results file (replacing rows of the same cases)")
@@ -289,7 +311,7 @@ def main():
     if args.loop_from_coarse:
         jobs += [("loop-from-coarse:" + str(SHARED / "armadillo.obj"), m, "log-chord", None) for m in args.modes]
     for mesh, mode, form, start in jobs:
-        r = run_case(mesh, mode, form, args.cap, start)
+        r = run_case(mesh, mode, form, args.cap, start, max_time=args.max_time, on_limit=args.on_limit)
         # A re-run replaces the earlier row of the same case (so --append can refresh a few cases).
         rows = [row for row in rows if (row["mesh"], row["mode"], row["formulation"]) != (mesh, mode, form)]
         rows.append(r)

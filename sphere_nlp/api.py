@@ -14,7 +14,7 @@ from .repair import prepare_mesh
 from .metrics import distortion_summary
 from .mesh_io import check_mesh_path, load_mesh, write_json, write_mesh, write_npz
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS
-from .solve import solve_angles
+from .solve import ON_LIMIT, solve_angles
 from .targets import MODES, make_targets
 from .texture import spherical_uv
 from .unfold import unfold
@@ -73,6 +73,11 @@ class SphericalParameterization:
     formulation : str
     success : bool
         True when the solve succeeded (``solved``) and the certificate is valid.
+    converged : bool
+        True when the angle solve reached IPOPT's optimality tolerance; False when its margin stage
+        stopped at ``max_iter`` or ``max_time`` and the result is that iterate projected onto the
+        constraints (``solved`` and certified all the same, but not optimal; ``status`` says which
+        limit). See :func:`sphere_nlp.solve.project_onto_constraints`.
     solved : bool
         True when IPOPT finished (``status`` is Solve_Succeeded or Solved_To_Acceptable_Level) with
         angles and excesses that satisfy the inequalities (3)-(5).
@@ -121,6 +126,7 @@ class SphericalParameterization:
     certificate: Certificate
     vertex_map: np.ndarray = None
     solved: bool = False
+    converged: bool = False
     stages: list = field(default_factory=list)
     timings: dict = field(default_factory=dict)
     repairs: list = field(default_factory=list)
@@ -223,6 +229,7 @@ class SphericalParameterization:
             "formulation": self.formulation,
             "start": self.start,
             "success": bool(self.success),
+            "converged": bool(self.converged),
             "status": self.status,
             "iterations": int(self.iterations),
             "objective": float(self.objective),
@@ -315,7 +322,8 @@ def _as_arrays(mesh):
 
 def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weight=None,
                  target_angles=None, target_excess=None, formulation=DEFAULT_FORMULATION, max_iter=None,
-                 max_time=None, ipopt_options=None, progress=None, on_stage=None, start=None, check=True):
+                 max_time=None, on_limit="fail", ipopt_options=None, progress=None, on_stage=None, start=None,
+                 check=True):
     """Map a closed genus-0 triangle mesh onto the unit sphere without overlaps.
 
     Parameters
@@ -336,6 +344,11 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         IPOPT iteration limit per stage.
     max_time : float, optional
         Wall-clock limit per IPOPT stage, in seconds.
+    on_limit : {"fail", "project"}
+        When the main (margin) stage reaches ``max_iter`` or ``max_time``: fail (default: SolveError
+        with ``check``, ``solved=False``), or project its last iterate onto the constraints and go
+        on, so that a long solve still ends with a certified (but not optimal) sphere:
+        ``converged=False`` and ``status`` says which limit. Log-chord only.
     ipopt_options : dict, optional
         Extra IPOPT options.
     progress : callable(stage, iteration, objective, violation, elapsed), optional
@@ -395,6 +408,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     if formulation not in FORMULATIONS:
         raise errors.UsageError("unknown formulation %r; choose one of %s"
                                 % (formulation, ", ".join(FORMULATIONS)))
+    if on_limit not in ON_LIMIT:
+        raise errors.UsageError("unknown on_limit %r; choose one of %s" % (on_limit, ", ".join(ON_LIMIT)))
     timings = {}
     clock = time.perf_counter()
     run_started = clock
@@ -423,7 +438,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     lap("build", "solve")
     solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
                             max_iter=max_iter, max_time=max_time, progress=progress,
-                            vertices=prepared.normalised_vertices, start=start)
+                            vertices=prepared.normalised_vertices, start=start, on_limit=on_limit)
     lap("solve", "unfold")
     # Symbolic derivatives and IPOPT set-up happen inside the solve; book them as build time.
     build_s = sum(s["build_s"] for s in solution.stages)
@@ -444,6 +459,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         status=solution.status, iterations=solution.iterations, objective=solution.objective,
         max_constraint_violation=solution.max_constraint_violation, max_angle_error=angle_error,
         certificate=certificate, vertex_map=prepared.vertex_map, solved=solution.success,
+        converged=solution.converged,
         stages=solution.stages, timings=timings, repairs=prepared.repairs,
         unfold_info=unfold_info, peak_rss_mb=peak_rss_mb(), start=solution.start)
     if check and not solution.success:

@@ -13,6 +13,7 @@ from pathlib import Path
 from . import errors
 from .mesh_io import check_mesh_path
 from .nlp import FORMULATIONS
+from .solve import ON_LIMIT
 from .targets import MODES
 
 # Three runnable examples (tests/test_ux.py runs each of them).
@@ -51,9 +52,12 @@ def build_parser():
     method.add_argument("--area-weight", type=float, metavar="W", help="weight of the area term")
     method.add_argument("--formulation", default="log-chord", choices=FORMULATIONS, metavar="F",
                         help="log-chord (default), substituted or faithful (the paper verbatim)")
-    limits = parser.add_argument_group("solver limits (reaching one is a failure)")
+    limits = parser.add_argument_group("solver limits (reaching one is a failure, unless --on-limit project)")
     limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit per stage")
     limits.add_argument("--max-time", type=float, metavar="S", help="wall-clock limit per IPOPT stage, seconds")
+    limits.add_argument("--on-limit", choices=ON_LIMIT, default="fail",
+                        help="when the main stage reaches a limit: fail (default), or project its last "
+                             "iterate onto the constraints and write that certified, not optimal, sphere")
     misc = parser.add_argument_group("messages")
     misc.add_argument("-q", "--quiet", action="store_true", help="print only errors")
     misc.add_argument("--debug", action="store_true", help="show tracebacks")
@@ -134,10 +138,15 @@ def summary_line(output, result):
     """The run in one line: vertices, mode, time, certificate and mean distortion."""
     c = result.certificate
     d = result.distortion()
-    return ("wrote %s: %d vertices, %s, %.2f s, certified (degree %.12g, 0 flipped), mean angle "
+    line = ("wrote %s: %d vertices, %s, %.2f s, certified (degree %.12g, 0 flipped), mean angle "
             "distortion %.2f°, mean |log area ratio| %.3f"
             % (output, len(result.vertices), result.target, result.timings["total"], c.degree,
                d["mean_abs_angle_diff_deg"], d["mean_abs_log_area"]))
+    if not result.converged:
+        line += ("; NOT OPTIMAL: the solve stopped at its limit (IPOPT %s after %d iterations, objective "
+                 "%.6g) and its last iterate was projected onto the constraints"
+                 % (result.status, result.iterations, result.objective))
+    return line
 
 
 def _check_suffix(path, suffix, what):
@@ -163,7 +172,8 @@ def run(args, progress):
 
     result = parameterize(str(input_path), target=args.target, angle_weight=args.angle_weight,
                           area_weight=args.area_weight, formulation=args.formulation,
-                          max_iter=args.max_iter, max_time=args.max_time, progress=progress.iteration,
+                          max_iter=args.max_iter, max_time=args.max_time, on_limit=args.on_limit,
+                          progress=progress.iteration,
                           on_stage=on_stage, check=False)
     for repair in result.repairs:
         progress.say("repaired: " + repair)
