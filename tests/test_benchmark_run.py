@@ -57,3 +57,22 @@ def test_capped_hierarchy_row_says_where_each_level_was():
                                           "loop:armadillo.obj from its parent's solution")])
 def test_mesh_labels(mesh, label):
     assert bench.mesh_label(mesh) == label
+
+
+def test_time_limit_and_on_limit_reach_the_worker_and_the_row():
+    # Passed to parameterize (a limit this run does not reach: an ordinary, converged row).
+    row = bench.run_case("loop-from-coarse:" + CYLINDER, "original-areas", "log-chord", cap_s=120,
+                         max_time=60.0, on_limit="project")
+    assert row["max_time_s"] == 60.0 and row["on_limit"] == "project"
+    assert row["converged"] and row["coarse"]["converged"] and row["certificate"]["valid"]
+    assert bench.status_text(row) == "Solve_Succeeded"
+
+
+def test_projected_rows_say_they_are_not_optimal():
+    row = {"status": "Maximum_WallTime_Exceeded", "success": True, "converged": False, "max_time_s": 1200.0,
+           "coarse": {"converged": False}}
+    assert bench.status_text(row) == ("Maximum_WallTime_Exceeded (coarse and fine stopped at the 1200-s "
+                                      "stage limit and projected: not optimal)")
+    row = {"status": "Solve_Succeeded", "success": True, "converged": True, "max_time_s": 1200.0,
+           "coarse": {"converged": False}}
+    assert "coarse stopped" in bench.status_text(row)
