@@ -228,11 +228,12 @@ AREA_MODE_HESSIAN = "clipped"
 ON_LIMIT = ("fail", "project")
 # IPOPT statuses of a run stopped short by the caller's limits (max_iter, max_time).
 LIMIT_STATUSES = ("Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded")
-# With on_limit="project", a log-chord margin stage stopped by those limits is not wasted: its iterate, which can be well off
-# the constraints (armadillo_remeshed.obj original-areas after 50 and 100 of its 306 margin
-# iterations: violation 0.36 and 0.59), is projected onto them (see project_onto_constraints) in
-# 4-7 IPOPT iterations, 2.4-3.4 s, changing the objective by < 0.1% (287.177 -> 287.115,
-# 280.745 -> 280.692, 277.264 -> 277.238). The projection has its own iteration cap, this.
+# With on_limit="project", a log-chord margin stage stopped by those limits is not wasted: its
+# iterate, which can be well off the constraints (armadillo_remeshed.obj original-areas after 50,
+# 100 and 150 of its 306 margin iterations: violation 0.36, 0.59, 0.05), is projected onto them
+# (see project_onto_constraints) in 7, 6 and 4 IPOPT iterations, 2.4-3.4 s, changing the objective
+# by < 0.1% (287.177 -> 287.115, 280.745 -> 280.692, 277.264 -> 277.238). The projection has its
+# own iteration cap, this (max_iter does not apply to it; max_time does).
 PROJECTION_ITERATIONS = 50
 
 # Corners above this angle at the start use the obtuse form of the edge constraints (AngleNLP).
