@@ -80,7 +80,8 @@ class SphericalParameterization:
         limit). See :func:`sphere_nlp.solve.project_onto_constraints`.
     solved : bool
         True when IPOPT finished (``status`` is Solve_Succeeded or Solved_To_Acceptable_Level) with
-        angles and excesses that satisfy the inequalities (3)-(5).
+        angles and excesses that satisfy the inequalities (3)-(5), or (``on_limit="project"``) when
+        the projection of a stage stopped by a limit did (``converged`` False).
     status : str
         IPOPT's return status of the last stage.
     iterations : int
