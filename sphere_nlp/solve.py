@@ -645,11 +645,10 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                                                   dropped, options, log_u_lower, mode_window,
                                                   progress=stage_progress("projection"))
             stages.append(_stage_record("projection", projection))
-            angles, excess = nlp.unpack(projection["x"])
-            if (projection["success"] and not violates_inequalities(angles, excess)
-                    and max_constraint_violation(connectivity, angles, excess) <= FEASIBILITY_TOLERANCE):
-                return _finish(connectivity, targets, angles, excess, projection, stages, init_angles,
-                               init_excess, start_kind, stopped_status=direct["status"])
+            projected = _finish(connectivity, targets, *nlp.unpack(projection["x"]), projection, stages,
+                                init_angles, init_excess, start_kind, stopped_status=direct["status"])
+            if projected.success:
+                return projected
         run, with_margin = direct, True
         if _diverged(connectivity, nlp, direct["x"]):
             # The direct margin stage ran away from the solution set (hand_closed.obj
