@@ -63,6 +63,8 @@ def progress(stage, iteration, objective, violation, elapsed):
             json.dump(snapshot, f)
         os.replace(spec["progress_file"] + ".tmp", spec["progress_file"])
 start, coarse = spec.get("start"), None
+# The caller's per-stage limit and what a stopped main stage yields, for every solve of the case.
+limits = {"max_time": spec["max_time"], "on_limit": spec["on_limit"]}
 if isinstance(mesh, str) and mesh.startswith(("loop:", "loop-from-coarse:")):
     import trimesh
     m = trimesh.load(mesh.split(":", 1)[1], process=False, force="mesh")
@@ -71,7 +73,7 @@ if isinstance(mesh, str) and mesh.startswith(("loop:", "loop-from-coarse:")):
         from sphere_nlp.hierarchy import prolong_to_subdivision
         coarse = sphere_nlp.parameterize((m.vertices, m.faces), target=spec["mode"],
                                          formulation=spec["formulation"], check=True,
-                                         max_time=spec.get("max_time"), on_limit=spec.get("on_limit", "fail"),
+                                         **limits,
                                          progress=lambda stage, *a: progress("coarse " + stage, *a))
         coarse_positions = coarse.vertices[coarse.vertex_map]
     V, F = trimesh.remesh.subdivide_loop(m.vertices, m.faces, iterations=1)
@@ -79,12 +81,11 @@ if isinstance(mesh, str) and mesh.startswith(("loop:", "loop-from-coarse:")):
     if coarse is not None:
         start = prolong_to_subdivision(coarse_positions, F)
 r = sphere_nlp.parameterize(mesh, target=spec["mode"], formulation=spec["formulation"],
-                            start=start, check=False, progress=progress,
-                            max_time=spec.get("max_time"), on_limit=spec.get("on_limit", "fail"))
+                            start=start, check=False, progress=progress, **limits)
 out = r.report()
 out["wall_s"] = time.perf_counter() - t0
-if spec.get("max_time") is not None:
-    out["max_time_s"], out["on_limit"] = spec["max_time"], spec.get("on_limit", "fail")
+if limits["max_time"] is not None:
+    out["max_time_s"], out["on_limit"] = limits["max_time"], limits["on_limit"]
 if coarse is not None:
     # The row's total is the whole job: the coarse solve, the subdivision and the fine solve.
     out["coarse"] = {"vertices": int(len(coarse.vertices)), "iterations": int(coarse.iterations),
