@@ -12,7 +12,8 @@ Two stages:
    ill-conditioned ones wait a level, and placements from several triangles of a level are averaged
    with weights ``sin^2`` (the paper's averaging idea). If a level completes triangles whose angles
    are off by more than ``WALK_REPAIR_ERROR``, the completed region is corrected (stage 2) before
-   the walk goes on; well-shaped meshes never need it.
+   the walk goes on, and so it is before a level that only ill-conditioned triangles reach, which
+   would multiply the error so far (``WALK_FORCED_REPAIR_ERROR``); well-shaped meshes never need it.
 2. **Correction.** The walk accumulates error with depth (the paper's "numerical error, which
    increases with the number of triangles"). Gauss-Newton on all corner-angle residuals
    ``angle(positions) - solved angle`` removes it: each vertex moves in its tangent plane and is
@@ -198,6 +199,21 @@ WALK_REPAIR_GROWTH = 1.5
 WALK_URGENT_ERROR = 3e-2
 WALK_URGENT_GROWTH = 1.1
 
+# A level none of whose vertices has a well-conditioned triangle (a band of needles whose far
+# vertices all sit at sharp corners) places them anyway, multiplying the error of the placed region by
+# about 1 / sin(angle at w). Below WALK_REPAIR_ERROR that error is normally left for the final
+# correction, but amplified it is not: on the Loop armadillo's original-areas map (173k vertices,
+# corners of 0.007 rad at the far side of such bands) an error of 1.6e-4 became 2 pi and 41 flips.
+# So before such a level the placed region is corrected whenever its error / sin would pass this.
+WALK_FORCED_REPAIR_ERROR = 1e-5
+
+
+def _max_angle_error(positions, faces, angles):
+    """Largest |angle measured from positions - solved angle| over some faces (0 for none)."""
+    corners = positions[faces].reshape(-1, 3)
+    error = np.abs(spherical_angles(corners, np.arange(len(corners)).reshape(-1, 3)) - angles)
+    return error.max(initial=0.0)
+
 
 def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True, excess=None):
     """Breadth-first placement of every vertex from two placed neighbours and two chord lengths.
@@ -220,7 +236,9 @@ def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True
         use the best-conditioned one.
     repair : bool
         Correct the completed part of the mesh (:func:`correct`) whenever a level completes a
-        triangle with an angle error above ``WALK_REPAIR_ERROR``.
+        triangle with an angle error above ``WALK_REPAIR_ERROR``, and before a level that only
+        ill-conditioned triangles reach if the error so far, amplified, would pass
+        ``WALK_FORCED_REPAIR_ERROR``.
 
     Returns
     -------
@@ -279,6 +297,13 @@ def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True
         best = np.zeros(n)
         np.maximum.at(best, w, sin_w)
         ok = best[w] >= WELL_CONDITIONED_SIN
+        if repair and not ok.any() and placed.sum() > placed_at_repair:
+            done = np.flatnonzero(count == 3)
+            if not _max_angle_error(positions, F[done], A[done]) <= WALK_FORCED_REPAIR_ERROR * best[w].max():
+                positions = correct(F[done], A[done], positions, max_iterations=20, tolerance=1e-8,
+                                    slow_target=np.inf)[0]
+                placed_at_repair = placed.sum()
+                repairs += 1
         pending = frontier
         if ok.any():                                    # defer ill-conditioned vertices to a later level
             frontier, rows, w, u, v, next_, prev, sin_w = (x[ok] for x in (frontier, rows, w, u, v, next_,
@@ -308,9 +333,7 @@ def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True
         growth = placed.sum() / placed_at_repair
         if repair and growth >= WALK_URGENT_GROWTH:
             completed = np.unique(touched[count[touched] == 3])
-            corners = positions[F[completed]].reshape(-1, 3)
-            error = np.abs(spherical_angles(corners, np.arange(len(corners)).reshape(-1, 3)) - A[completed])
-            error = error.max(initial=0.0)
+            error = _max_angle_error(positions, F[completed], A[completed])
             # Near the end the final correction will do: only urgent repairs then.
             tolerable = WALK_URGENT_ERROR if (growth < WALK_REPAIR_GROWTH or placed.sum() > 0.8 * n) \
                 else WALK_REPAIR_ERROR
