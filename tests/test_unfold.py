@@ -56,6 +56,24 @@ def needle_mesh(subdivisions, count, gap, seed=0):
     return hull_mesh(np.vstack([V, twins / np.linalg.norm(twins, axis=1, keepdims=True)]))
 
 
+def band_mesh(fine=1000, coarse=12, gap=0.5, seed=0):
+    """A dense cap, a ring of ``fine`` points at its edge, a ring of ``coarse`` points ``gap`` radians
+    further south, and a sparse south: the strip between the rings is fans of needles whose sharp
+    corners (about 0.007 rad) sit at the coarse ring's vertices, the only way the walk can reach them.
+    """
+    rng = np.random.default_rng(seed)
+
+    def ring(count, z, phase):
+        phi = 2 * np.pi * (np.arange(count) + phase) / count
+        return np.c_[np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), np.full(count, z)]
+
+    points = rng.normal(size=(6000, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    z_fine, z_coarse = 0.3, np.cos(np.arccos(0.3) + gap)
+    return hull_mesh(np.vstack([points[points[:, 2] > z_fine + 0.05][:2000], ring(fine, z_fine, 0),
+                                ring(coarse, z_coarse, 0.5), points[points[:, 2] < z_coarse - 0.3][:200]]))
+
+
 def exact_problem(V, F, noise=0.0, seed=3):
     """Connectivity and the angles of the spherical mesh, relatively perturbed by up to ``noise``."""
     angles = spherical_angles(V, F)
@@ -197,3 +215,24 @@ def test_large_meshes_reach_the_angles(mesh):
     X, info = unfold(connectivity, angles)
     assert info["corrected_max_angle_error"] < 1e-7
     assert certify(X, F).valid
+
+
+def test_walk_repairs_before_crossing_a_band_of_needles(monkeypatch):
+    # The coarse ring's vertices can only be placed from needles with 0.007-rad corners at them, which
+    # multiply the error of everything placed so far by ~1 / 0.007. Angles off by 1e-6 (a loose
+    # solver) leave ~1e-6 of drift before the band: crossing it as is, the walk ends 8e-4 off; with
+    # the repair before the band (WALK_FORCED_REPAIR_ERROR), at the level of the angles' own error.
+    # (The Loop armadillo's original-areas map: 2 pi and 41 flips without it, certified with it.)
+    import sphere_nlp.unfold as unfold_module
+
+    V, F = band_mesh()
+    connectivity, angles = exact_problem(V, F, noise=1e-6)
+    assert angles.min() < 0.01
+    walks, default = {}, unfold_module.WALK_FORCED_REPAIR_ERROR
+    for threshold in (default, np.inf):
+        monkeypatch.setattr(unfold_module, "WALK_FORCED_REPAIR_ERROR", threshold)
+        X, info = unfold(connectivity, angles)
+        walks[threshold] = info["walk_max_angle_error"]
+        assert certify(X, F).valid and info["corrected_max_angle_error"] < 1e-5
+    assert walks[np.inf] > 1e-4
+    assert walks[default] < 1e-5
