@@ -64,17 +64,28 @@ def build_parser():
     return parser
 
 
+# A solve stage running this long without --max-time gets one note on how to bound it: the area
+# modes' main stage takes 15-35 minutes at 43k-50k vertices and had not converged after 2.5 hours at
+# 173k (README, Sizes and speed).
+LONG_STAGE_S = 600.0
+LONG_STAGE_NOTE = ("sphere_nlp: note: this IPOPT stage has run for %s (large meshes in the area modes "
+                   "can take hours); to bound a run, start it with --max-time SECONDS --on-limit project, which "
+                   "writes a certified, not optimal, sphere when a stage reaches the limit")
+
+
 class Progress:
     """Progress on stderr: one updating line on a terminal, plain lines otherwise; nothing when quiet.
 
     The updating line shows the stage (load, build, solve, unfold, certify, write), and while solving
     IPOPT's iteration, objective and constraint violation; all with the elapsed time. Any other
-    message first ends that line with a newline, so nothing is written over it.
+    message first ends that line with a newline, so nothing is written over it. With
+    ``long_stage_s``, the first IPOPT stage to run that long adds :data:`LONG_STAGE_NOTE`, once.
     """
 
-    def __init__(self, quiet=False, stream=None):
+    def __init__(self, quiet=False, stream=None, long_stage_s=None):
         self.stream = stream or sys.stderr
         self.quiet = quiet
+        self.long_stage_s = long_stage_s
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
         self.start = time.perf_counter()
         # When the progress state was last shown: a log gets its first state line after a pause,
@@ -128,6 +139,10 @@ class Progress:
             self._update("%s, %.1f s" % (name, self.elapsed()), always=self.tty)
 
     def iteration(self, stage, iteration, objective, violation, elapsed):
+        if self.long_stage_s is not None and elapsed >= self.long_stage_s:
+            limit = self.long_stage_s
+            self.say(LONG_STAGE_NOTE % ("%.0f minutes" % (limit / 60) if limit >= 120 else "%.0f s" % limit))
+            self.long_stage_s = None
         if not self.quiet:
             self._update("solve (%s): iteration %d, objective %.6g, constraint violation %.2e, %.1f s"
                          % (stage, iteration, objective, violation, self.elapsed()),
@@ -213,7 +228,8 @@ def main(argv=None):
         args = parser.parse_args(argv)
     except SystemExit as exit_:
         return int(exit_.code or 0)
-    progress = Progress(quiet=args.quiet)
+    # Without a time limit, a long stage gets a note on how to bound it (see LONG_STAGE_S).
+    progress = Progress(quiet=args.quiet, long_stage_s=LONG_STAGE_S if args.max_time is None else None)
     try:
         try:
             return run(args, progress)

@@ -379,6 +379,38 @@ def test_quiet_progress_writes_nothing():
     assert stream.getvalue() == ""
 
 
+def test_a_long_stage_gets_one_note_on_bounding_the_run():
+    stream = io.StringIO()
+    progress = Progress(stream=stream, long_stage_s=600.0)
+    progress.iteration("margin", 10, 1.0, 1e-3, 599.0)
+    assert "note" not in stream.getvalue()
+    progress.iteration("margin", 11, 1.0, 1e-3, 601.0)
+    progress.iteration("margin", 12, 1.0, 1e-3, 900.0)
+    progress.iteration("projection", 0, 1.0, 1e-3, 700.0)
+    notes = [line for line in stream.getvalue().splitlines() if "note:" in line]
+    assert len(notes) == 1
+    assert "10 minutes" in notes[0] and "--max-time SECONDS --on-limit project" in notes[0]
+    quiet = io.StringIO()
+    Progress(quiet=True, stream=quiet, long_stage_s=1.0).iteration("margin", 1, 1.0, 0.0, 5.0)
+    assert quiet.getvalue() == ""
+
+
+@pytest.mark.parametrize("limit, expected", [([], 600.0), (["--max-time", "60"], None)])
+def test_the_long_stage_note_is_armed_only_without_a_time_limit(tmp_path, capsys, monkeypatch, limit, expected):
+    import sphere_nlp.cli as cli
+
+    made = []
+
+    class RecordingProgress(cli.Progress):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self.long_stage_s)
+
+    monkeypatch.setattr(cli, "Progress", RecordingProgress)
+    status, _ = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.off", *limit)
+    assert status == 0 and made == [expected]
+
+
 def test_help_is_grouped_and_ends_with_three_runnable_examples(tmp_path):
     help_text = subprocess.run([sys.executable, "-m", "sphere_nlp", "--help"], capture_output=True,
                                text=True, env=checkout_env()).stdout
