@@ -55,8 +55,10 @@ def negative_directions(hessian_upper, jacobian, sigma, n_pairs):
         rhs[:n] = np.ravel(v)
         return lu.solve(rhs)[:n]
 
+    # A fixed start vector: ARPACK's random one made the runs differ (knight 65-71 margin iterations).
+    start = np.random.default_rng(0).standard_normal(n)
     theta, vectors = spla.eigsh(spla.LinearOperator((n, n), matvec=solve, dtype=float), k=n_pairs, which="LA",
-                                tol=1e-3, maxiter=2000)
+                                tol=1e-3, maxiter=2000, v0=start)
     lam = 1.0 / np.maximum(theta, 1e-300) - sigma
     return [(value, vector) for value, vector in zip(lam, vectors.T) if value < -1e-7]
 
@@ -83,8 +85,9 @@ def main(argv=None):
             return values
         start = time.perf_counter()
         if not hasattr(values_object, "_diagonal_positions"):
-            positions = csc_from_casadi(values_object.hessian_sparsity, np.arange(len(values), dtype=float))
-            values_object._diagonal_positions = np.asarray(positions.diagonal()).astype(int)
+            pattern = csc_from_casadi(values_object.hessian_sparsity, np.ones(len(values)))
+            diagonal = np.arange(pattern.shape[0])
+            values_object._diagonal_positions = nlp_module._positions(pattern, diagonal, diagonal)
         _, jacobian_values = values_object.jacobian(x)
         jacobian = csc_from_casadi(values_object.jacobian_sparsity, jacobian_values)
         hessian_upper = csc_from_casadi(values_object.hessian_sparsity, values)
