@@ -54,7 +54,8 @@ def main(argv=None):
     from sphere_nlp.metrics import distortion_summary
     from sphere_nlp.nlp import AngleNLP
     from sphere_nlp.repair import prepare_mesh
-    from sphere_nlp.solve import FEASIBILITY_TOLERANCE, max_constraint_violation, violates_inequalities
+    from sphere_nlp.settings import SolverSettings
+    from sphere_nlp.solve import max_constraint_violation, violates_inequalities
     from sphere_nlp.targets import make_targets
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -86,7 +87,7 @@ def main(argv=None):
     angle_error = max_angle_error(positions, faces, angles)
     finish_s = time.perf_counter() - clock
 
-    solved = (status == "Solve_Succeeded" and violation <= FEASIBILITY_TOLERANCE
+    solved = (status == "Solve_Succeeded" and violation <= SolverSettings().feasibility_tolerance
               and not violates_inequalities(angles, excess))
     row = {"mesh": Path(args.mesh).name, "method": "sphere_nlp:" + args.mode,
            "n_vertices": len(prepared.vertices)}

@@ -23,7 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
 def main(argv=None):
-    from sphere_nlp import solve
+    from sphere_nlp import solve, starts
+    from sphere_nlp.settings import SolverSettings
     from sphere_nlp.mesh_io import load_mesh
     from sphere_nlp.nlp import AngleNLP
     from sphere_nlp.repair import prepare_mesh
@@ -43,10 +44,10 @@ def main(argv=None):
     run = np.load(runs[-1])
     x, lam_g = run["x"], run["lam_g"]
     t = connectivity.n_faces
-    gauge = solve.START_GAUGE if targets.area_weight == 0 else "area"
-    _, _, start_positions, _ = solve.feasible_start(connectivity, prepared.normalised_vertices, gauge=gauge)
+    gauge = SolverSettings().start_gauge if targets.area_weight == 0 else "area"
+    _, _, start_positions, _ = starts.feasible_start(connectivity, prepared.normalised_vertices, gauge=gauge)
     dropped = solve.independent_vertices(start_positions)
-    obtuse = AngleNLP(connectivity, targets).unpack(run["x0"])[0] > solve.OBTUSE_ANGLE
+    obtuse = AngleNLP(connectivity, targets).unpack(run["x0"])[0] > SolverSettings().obtuse_angle
     nlp = AngleNLP(connectivity, targets, dropped_vertices=dropped, obtuse_corners=obtuse)
     values, upper = nlp._numeric, nlp._parts["upper"]          # blocks in _log_chord_parts' order
     n_kept = connectivity.n_vertices - len(dropped)

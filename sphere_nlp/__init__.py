@@ -17,6 +17,7 @@ from .errors import (CertificateError, ComponentsError, DegenerateFaceError, Fac
                      NonManifoldVertexError, OpenBoundaryError, OrientationError, SolveError,
                      SphereNLPError, UnreadableMeshError, UsageError)
 from .mesh_io import load_mesh, write_mesh
+from .settings import SolverSettings
 from .targets import MODES
 
 __version__ = "0.1.0"
@@ -26,5 +27,5 @@ __all__ = [
     "MODES", "SphereNLPError", "MeshInputError", "UnreadableMeshError", "FaceIndexError",
     "NonFiniteCoordinatesError", "DegenerateFaceError", "OpenBoundaryError", "NonManifoldEdgeError",
     "NonManifoldVertexError", "OrientationError", "ComponentsError", "GenusError", "UsageError",
-    "SolveError", "CertificateError",
+    "SolveError", "CertificateError", "SolverSettings",
 ]

@@ -279,7 +279,7 @@ def max_angle_error(positions, faces, angles):
     return error if np.isfinite(error) else float("inf")
 
 
-def _start_positions(start, prepared):
+def _start_in_repaired_numbering(start, prepared):
     """Start positions given per input vertex, in the repaired numbering (the solve certifies them)."""
     start = np.asarray(start, dtype=float)
     vertex_map = prepared.vertex_map
@@ -324,7 +324,7 @@ def _as_arrays(mesh):
 def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weight=None,
                  target_angles=None, target_excess=None, formulation=DEFAULT_FORMULATION, max_iter=None,
                  max_time=None, on_limit="fail", ipopt_options=None, progress=None, on_stage=None, start=None,
-                 check=True):
+                 check=True, settings=None):
     """Map a closed genus-0 triangle mesh onto the unit sphere without overlaps.
 
     Parameters
@@ -359,7 +359,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     start : {"auto", "conformal", "embedding", "linear"} or (n_input, 3) array, optional
         Starting point of the solve: a valid spherical triangulation, either the Mobius-centred
         conformal map when it is bijective or the convex embedding (``auto``, default for log-chord;
-        see :func:`sphere_nlp.solve.starting_positions`), or the paper's linear least-squares start
+        see :func:`sphere_nlp.starts.starting_positions`), or the paper's linear least-squares start
         (default for faithful and substituted). An array gives the start's unit-sphere positions,
         one row per input vertex, which must form a valid spherical map of the mesh: an earlier
         result's ``vertices[vertex_map]``, say, or a coarser mesh's solution carried over to its
@@ -367,6 +367,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     check : bool
         Raise :class:`SolveError` / :class:`CertificateError` on failure (default). With False the
         result is returned with ``success=False`` instead.
+    settings : SolverSettings, optional
+        The solver's tuning constants (:class:`sphere_nlp.settings.SolverSettings`; docs/tuning.md).
 
     Returns
     -------
@@ -435,11 +437,12 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
                            angle_weight=angle_weight, area_weight=area_weight,
                            target_angles=target_angles, target_excess=target_excess)
     if start is not None and not isinstance(start, str):
-        start = _start_positions(start, prepared)
+        start = _start_in_repaired_numbering(start, prepared)
     lap("build", "solve")
     solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
                             max_iter=max_iter, max_time=max_time, progress=progress,
-                            vertices=prepared.normalised_vertices, start=start, on_limit=on_limit)
+                            vertices=prepared.normalised_vertices, start=start, on_limit=on_limit,
+                            settings=settings)
     lap("solve", "unfold")
     # Symbolic derivatives and IPOPT set-up happen inside the solve; book them as build time.
     build_s = sum(s["build_s"] for s in solution.stages)

@@ -1,7 +1,8 @@
 """Baseline spherical maps to compare sphere_nlp against.
 
 * :func:`alexa_relaxation`: the relaxation of Alexa (2000), the method of panel (b) of the paper's Fig. 3.
-* :func:`conformal_map`: the linear spherical conformal map of Choi, Lam & Lui (2015, FLASH).
+* :func:`conformal_map`: the linear spherical conformal map of Choi, Lam & Lui (2015, FLASH), the
+  solver's default start (defined in :mod:`sphere_nlp.conformal`).
 * :func:`cmcf_map`: conformalized mean curvature flow (Kazhdan, Solomon & Ben-Chen 2012).
 * :func:`tutte_projection`: the valid-by-construction convex embedding sphere_nlp starts from.
 
@@ -16,6 +17,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .certify import Certificate, certify
+from .conformal import (beltrami_coefficient, conformal_map, cotan_laplacian, linear_beltrami_solver,  # noqa: F401
+                        lumped_mass)
 from .targets import triangle_areas_3d
 
 STARTS = ("central", "normals")
@@ -53,7 +56,7 @@ def _edges(faces):
     return np.unique(np.sort(pairs, axis=1), axis=0)
 
 
-def _start_positions(vertices, faces, start):
+def _alexa_start(vertices, faces, start):
     """Initial sphere positions: central projection from the centroid, or the Gauss map of normals."""
     if not isinstance(start, str):
         positions = np.array(start, dtype=float)
@@ -154,7 +157,7 @@ def alexa_relaxation(vertices, faces, max_iter=10000, tol=1e-10, step=0.5, start
         free[np.asarray(anchors, dtype=np.int64)] = False
         recentre = False
 
-    X = _start_positions(vertices, faces, start)
+    X = _alexa_start(vertices, faces, start)
     move = np.inf
     iterations = 0
     while iterations < max_iter and not move < tol:
@@ -175,231 +178,6 @@ def alexa_relaxation(vertices, faces, max_iter=10000, tol=1e-10, step=0.5, start
         X = Y
     return AlexaRelaxation(positions=X, iterations=iterations, converged=bool(move < tol),
                            last_move=move, certificate=certify(X, faces))
-
-
-# --- shared finite-element pieces -------------------------------------------------------------------
-
-def cotan_laplacian(vertices, faces):
-    """Cotangent Laplacian (stiffness matrix) of a triangle mesh, (n, n) sparse, positive semidefinite.
-
-    ``K[i, j] = -(cot alpha_ij + cot beta_ij) / 2`` for an edge ij (alpha, beta the angles opposite
-    it), rows summing to zero; ``x @ K @ x`` is the Dirichlet energy of the piecewise-linear function x.
-
-    Examples
-    --------
-    >>> from sphere_nlp.shapes import octahedron
-    >>> V, F = octahedron()
-    >>> K = cotan_laplacian(V, F)
-    >>> bool(abs(K.sum(axis=1)).max() < 1e-15), bool(np.isclose(K[0, 2], -1 / np.sqrt(3)))  # cot 60 deg
-    (True, True)
-    """
-    vertices = np.asarray(vertices, dtype=float)
-    faces = np.asarray(faces, dtype=np.int64)
-    P = vertices[faces]
-    to_next = np.roll(P, -1, axis=1) - P
-    to_prev = np.roll(P, 1, axis=1) - P
-    # cot of the angle at corner k = dot / |cross|; it weighs the edge opposite that corner.
-    cot = (np.einsum("tjk,tjk->tj", to_next, to_prev)
-           / np.linalg.norm(np.cross(to_next, to_prev), axis=2))
-    return _assemble_edge_weights(faces, 0.5 * cot, len(vertices))
-
-
-def _assemble_edge_weights(faces, corner_weight, n):
-    """Laplacian from a weight per corner, put on the edge opposite that corner (no face loops)."""
-    i = np.roll(faces, -1, axis=1).ravel()           # the edge opposite corner k: (k+1, k+2)
-    j = np.roll(faces, -2, axis=1).ravel()
-    w = corner_weight.ravel()
-    W = sp.coo_matrix((np.r_[w, w], (np.r_[i, j], np.r_[j, i])), shape=(n, n)).tocsr()
-    return (sp.diags(np.asarray(W.sum(axis=1)).ravel()) - W).tocsr()
-
-
-def lumped_mass(vertices, faces):
-    """Barycentric lumped mass matrix: a third of the area of each incident triangle, (n, n) diagonal."""
-    areas = triangle_areas_3d(vertices, faces)
-    mass = np.bincount(np.asarray(faces).ravel(), weights=np.repeat(areas / 3, 3), minlength=len(vertices))
-    return sp.diags(mass)
-
-
-def _dirichlet_solve(K, values, fixed):
-    """Solve K x = 0 on the free vertices with x = values on ``fixed``; values is (n, k), returns (n, k)."""
-    n = K.shape[0]
-    free = np.ones(n, bool)
-    free[fixed] = False
-    x = np.array(values, dtype=float)
-    K = K.tocsr()
-    rhs = -(K[free][:, ~free] @ x[~free])
-    x[free] = spla.splu(K[free][:, free].tocsc()).solve(np.asarray(rhs, dtype=float))
-    return x
-
-
-def _inverse_stereographic(z, from_pole=1.0):
-    """Unit-sphere points from plane points (n, 2).
-
-    ``from_pole=1``: projection from the north pole (the plane's infinity is (0, 0, 1));
-    ``from_pole=-1``: from the south pole.
-    """
-    r2 = np.einsum("ij,ij->i", z, z)
-    return np.c_[2 * z, from_pole * (r2 - 1)] / (1 + r2)[:, None]
-
-
-# --- Choi, Lam & Lui (2015) ---------------------------------------------------------------------------
-
-def _most_regular_face(vertices, faces):
-    """The face whose edge lengths are closest to a third of its perimeter each (FLASH's big triangle)."""
-    P = vertices[faces]
-    lengths = np.linalg.norm(np.roll(P, -1, axis=1) - P, axis=2)
-    regularity = np.abs(lengths / lengths.sum(axis=1, keepdims=True) - 1 / 3).sum(axis=1)
-    return int(np.argmin(regularity))
-
-
-def beltrami_coefficient(plane, faces, vertices):
-    """Beltrami coefficient of the map from plane positions (n, 2) to the 3D surface, per face, (t,) complex.
-
-    Per face, the surface's first fundamental form E, F, G in the plane's coordinates gives
-    mu = (E - G + 2iF) / (E + G + 2 sqrt(EG - F^2)); mu = 0 where the map is conformal.
-    """
-    Q = plane[faces]                                   # (t, 3, 2)
-    e1, e2 = Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0]
-    signed_area2 = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    X = vertices[faces]
-    d1, d2 = X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]
-    # Gradient of a linear function on the face from its differences along e1, e2 (Cramer's rule).
-    du = (d1 * e2[:, 1, None] - d2 * e1[:, 1, None]) / signed_area2[:, None]
-    dv = (d2 * e1[:, 0, None] - d1 * e2[:, 0, None]) / signed_area2[:, None]
-    E = np.einsum("ij,ij->i", du, du)
-    G = np.einsum("ij,ij->i", dv, dv)
-    F = np.einsum("ij,ij->i", du, dv)
-    return (E - G + 2j * F) / (E + G + 2 * np.sqrt(np.maximum(E * G - F ** 2, 0)))
-
-
-def linear_beltrami_solver(plane, faces, mu, fixed, targets):
-    """Quasi-conformal map of the plane mesh with Beltrami coefficient ``mu``, fixed vertices pinned.
-
-    Solves div(A grad u) = 0 for both coordinates, where the symmetric A of each face is
-    [[(1 - 2 Re mu + |mu|^2), -2 Im mu], [-2 Im mu, (1 + 2 Re mu + |mu|^2)]] / (1 - |mu|^2)
-    (Lui et al.'s linear Beltrami solver, as used by FLASH), discretised with linear elements.
-    """
-    mu = np.asarray(mu, dtype=complex)
-    # |mu| -> 1 makes A singular; such faces are degenerate in the map anyway.
-    size = np.abs(mu)
-    mu = np.where(size > 1 - 1e-9, mu / np.maximum(size, 1e-300) * (1 - 1e-9), mu)
-    denominator = 1 - np.abs(mu) ** 2
-    a = (1 - 2 * mu.real + np.abs(mu) ** 2) / denominator
-    b = -2 * mu.imag / denominator
-    c = (1 + 2 * mu.real + np.abs(mu) ** 2) / denominator
-    Q = plane[faces]
-    # Rotated opposite edges: grad phi_k = rot(edge opposite k) / (2 area) for the hat function of k.
-    opposite = np.roll(Q, -2, axis=1) - np.roll(Q, -1, axis=1)        # q_{k+2} - q_{k+1}
-    r = np.stack([-opposite[..., 1], opposite[..., 0]], axis=2)        # (t, 3, 2)
-    e1, e2 = Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0]
-    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
-    Ar = np.stack([a[:, None] * r[..., 0] + b[:, None] * r[..., 1],
-                   b[:, None] * r[..., 0] + c[:, None] * r[..., 1]], axis=2)
-    local = np.einsum("tid,tjd->tij", r, Ar) / (4 * area)[:, None, None]  # (t, 3, 3) element matrix
-    rows = np.repeat(faces, 3, axis=1).ravel()
-    cols = np.tile(faces, (1, 3)).ravel()
-    n = len(plane)
-    K = sp.coo_matrix((local.ravel(), (rows, cols)), shape=(n, n)).tocsr()
-    values = np.zeros((n, 2))
-    values[fixed] = targets
-    return _dirichlet_solve(K, values, fixed)
-
-
-def conformal_map(vertices, faces, fixed_fraction=0.1):
-    """Linear spherical conformal map of Choi, Lam & Lui (2015), "FLASH", SIAM J. Imaging Sci. 8(1).
-
-    Two linear solves, as in the paper:
-
-    1. **North-pole step.** Remove the most regular triangle (the "big triangle"), place it in the plane
-       with its 3D shape, and solve the Laplace equation (cotangent Laplacian) for the rest of the mesh
-       inside it: a discrete harmonic, hence nearly conformal, map of the punctured sphere to the plane.
-       Inverse stereographic projection (from the north pole) puts the big triangle around the north
-       pole. The plane is first scaled so that the big triangle and the triangle nearest the south pole
-       come out about equally large (the reference implementation's "optimal big triangle size").
-    2. **South-pole step.** The harmonic map is least conformal near the north pole, where the fixed big
-       triangle forces it. Project stereographically from the south pole, so that this region lies near
-       the origin; compute the Beltrami coefficient mu of the map from that plane back to the surface;
-       then solve the linear Beltrami solver for a map with that same mu while pinning the vertices
-       nearest the south pole (a fraction ``fixed_fraction`` of them, at least 3), whose positions were
-       already conformal. The composition has Beltrami coefficient ~0, i.e. is conformal everywhere.
-       Inverse stereographic projection from the south pole gives the sphere.
-
-    If the Beltrami solve produces non-finite values the pinned set is enlarged 5 times once, then the
-    step is skipped (the reference implementation does the same). The map is not guaranteed to be
-    bijective: cotangent weights can be negative on obtuse meshes.
-
-    Parameters
-    ----------
-    vertices : (n, 3) float array
-    faces : (t, 3) int array
-        Closed genus-0 triangle mesh, outward (counter-clockwise) faces.
-    fixed_fraction : float
-        Fraction of vertices pinned near the south pole in step 2.
-
-    Returns
-    -------
-    (n, 3) float array of unit vectors.
-
-    Examples
-    --------
-    >>> from sphere_nlp.shapes import icosphere
-    >>> from sphere_nlp.metrics import distortion_summary
-    >>> V, F = icosphere(2)
-    >>> s = distortion_summary(V * [1, 1, 1.5], conformal_map(V * [1, 1, 1.5], F), F)
-    >>> s["valid"], s["qc_mean"] < 1.1
-    (True, True)
-    """
-    vertices = np.asarray(vertices, dtype=float)
-    faces = np.asarray(faces, dtype=np.int64)
-    n = len(vertices)
-    # Step 1: harmonic map into the big triangle.
-    big = _most_regular_face(vertices, faces)
-    p1, p2, p3 = faces[big]
-    a, b = vertices[p2] - vertices[p1], vertices[p3] - vertices[p1]
-    scale = 1 / np.linalg.norm(a)
-    # p1 at 0, p2 at 1, p3 where the 3D shape puts it (counter-clockwise, so the rest comes out clockwise
-    # in the plane and counter-clockwise on the sphere after the orientation-reversing projection).
-    third = scale * np.array([a @ b / np.linalg.norm(a), np.linalg.norm(np.cross(a, b)) / np.linalg.norm(a)])
-    boundary = np.zeros((n, 2))
-    boundary[p2] = [1, 0]
-    boundary[p3] = third
-    z = _dirichlet_solve(cotan_laplacian(vertices, faces), boundary, [p1, p2, p3])
-    z -= z.mean(axis=0)
-    # Scale the plane so the big triangle (around the north pole) and the triangle nearest the south
-    # pole get about the same size on the sphere.
-    S = _inverse_stereographic(z)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w = S[:, :2] / (1 + S[:, 2:])                          # south-pole stereographic coordinates
-    order = np.argsort(np.linalg.norm(z[faces], axis=2).sum(axis=1))
-    inner = order[1] if order[0] == big else order[0]
-
-    def mean_side(points, face):
-        corners = points[faces[face]]
-        return np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1).mean()
-
-    north_side, south_side = mean_side(z, big), mean_side(w, inner)
-    if np.isfinite(south_side) and south_side > 0:
-        z *= np.sqrt(north_side * south_side) / north_side
-    S = _inverse_stereographic(z)
-
-    # Step 2: quasi-conformal correction around the north pole, in south-pole stereographic coordinates.
-    by_height = np.argsort(S[:, 2])
-    plane = S[:, :2] / (1 + S[:, 2:])
-    mu = beltrami_coefficient(plane, faces, vertices)
-    count = max(round(n * fixed_fraction), 3)
-    for attempt in range(2):
-        fixed = by_height[:min(n, count)]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            try:
-                corrected = linear_beltrami_solver(plane, faces, mu, fixed, plane[fixed])
-            except RuntimeError:                                # singular factorisation
-                corrected = np.full_like(plane, np.nan)
-        if np.isfinite(corrected).all():
-            break
-        count *= 5
-    else:
-        corrected = plane
-    return _inverse_stereographic(corrected, from_pole=-1.0)
 
 
 # --- Kazhdan, Solomon & Ben-Chen (2012) ----------------------------------------------------------------

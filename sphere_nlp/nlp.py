@@ -41,6 +41,8 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
+from .settings import DEFAULT_SETTINGS
+
 FORMULATIONS = ("log-chord", "substituted", "faithful")
 # How the log-chord form is evaluated for IPOPT: "numpy" (vectorised over triangles, see
 # _LogChordValues) or "casadi" (the same functions mapped in CasADi's interpreter; the reference).
@@ -48,9 +50,6 @@ EVALUATIONS = ("numpy", "casadi")
 # The Hessian handed to IPOPT by the log-chord form (see AngleNLP's ``hessian``).
 HESSIANS = ("exact", "clipped")
 DEFAULT_FORMULATION = "log-chord"
-
-# Weight of the penalty on the angle sums of the left-out vertices (see AngleNLP).
-DROPPED_PENALTY = 100.0
 
 # IPOPT statuses that count as a solution; everything else is a failure.
 SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
@@ -439,7 +438,7 @@ class AngleNLP:
         is), so the optima and IPOPT's fast local convergence are unchanged; away from them that
         term made the Hessian indefinite on every iteration of the area modes' long middle, and
         IPOPT's inertia correction added 1e-2..1e-1 times the identity instead, a step more like
-        gradient descent (see :data:`sphere_nlp.solve.AREA_MODE_HESSIAN` for the iterations).
+        gradient descent (see :class:`sphere_nlp.settings.SolverSettings`' ``area_mode_hessian``).
     evaluation : {"numpy", "casadi"}
         log-chord only: how IPOPT's function and derivative values are computed: by numpy over all
         triangles at once (default, faster), or by CasADi's interpreter one triangle at a time
@@ -453,7 +452,8 @@ class AngleNLP:
     """
 
     def __init__(self, connectivity, targets, formulation=DEFAULT_FORMULATION, dropped_vertices=(),
-                 angle_margin=1e-4, dropped_penalty=DROPPED_PENALTY, area_form="linear",
+                 angle_margin=DEFAULT_SETTINGS.angle_margin,
+                 dropped_penalty=DEFAULT_SETTINGS.dropped_penalty, area_form="linear",
                  obtuse_corners=None, evaluation="numpy", hessian="exact"):
         if formulation not in FORMULATIONS:
             raise ValueError("unknown formulation %r; choose one of %s" % (formulation, FORMULATIONS))

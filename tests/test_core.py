@@ -9,13 +9,18 @@ import sphere_nlp
 from sphere_nlp.certify import certify, signed_solid_angles, spherical_angles
 from sphere_nlp.connectivity import build_connectivity, validate_mesh
 from sphere_nlp.nlp import AngleNLP
+from sphere_nlp.settings import SolverSettings
 from sphere_nlp.shapes import cylinder, icosphere, octahedron, tetrahedron
-from sphere_nlp.solve import constraint_residuals, independent_vertices, linear_initial_guess
+from sphere_nlp import starts
+from sphere_nlp.solve import constraint_residuals, independent_vertices
+from sphere_nlp.starts import linear_initial_guess
 from sphere_nlp.targets import MODES, make_targets
 from sphere_nlp.unfold import half_chords_squared
 
 from conftest import MODELS
 from meshgen import ellipsoid
+
+SETTINGS = SolverSettings()
 
 
 @pytest.mark.parametrize("shape, angle", [(tetrahedron, 2 * np.pi / 3), (octahedron, np.pi / 2)])
@@ -297,7 +302,7 @@ def test_area_continuation_walks_the_log_excesses_to_the_targets():
     V, F = ellipsoid(2, axes=(1.0, 3.0, 0.4))
     c = build_connectivity(F, len(V))
     targets = make_targets("equal-areas", V, F, c.vertex_degree)
-    angles, excess, positions, _ = solve.feasible_start(c, V)
+    angles, excess, positions, _ = starts.feasible_start(c, V)
     nlp = AngleNLP(c, targets, "log-chord", dropped_vertices=solve.independent_vertices(positions),
                    area_form="log")
     x0 = nlp.pack(angles, excess)
@@ -305,11 +310,11 @@ def test_area_continuation_walks_the_log_excesses_to_the_targets():
     x = solve.area_continuation(
         lambda tg, x: AngleNLP(c, tg, "log-chord", dropped_vertices=solve.independent_vertices(positions),
                             area_form="log"),
-        targets, x0, c.n_faces, dict(solve.DEFAULT_IPOPT_OPTIONS), stages=stages)
+        targets, x0, c.n_faces, dict(SETTINGS.ipopt_options), stages=stages)
     start_error = np.abs(np.log(excess / targets.excess))
-    n_steps = int(np.ceil(start_error.max() / solve.AREA_CONTINUATION_STEP))
+    n_steps = int(np.ceil(start_error.max() / SETTINGS.area_continuation_step))
     assert n_steps >= 2 and len(stages) == n_steps
-    assert all(s["iterations"] <= solve.AREA_CONTINUATION_ITERATIONS for s in stages)
+    assert all(s["iterations"] <= SETTINGS.area_continuation_iterations for s in stages)
     solved_angles, solved_excess = nlp.unpack(x)
     assert solve.max_constraint_violation(c, solved_angles, solved_excess) < 0.05   # measured 0.005
     error = np.abs(np.log(solved_excess / targets.excess))
@@ -324,12 +329,12 @@ def _stretched_ellipsoid_start():
     V, F = ellipsoid(2, axes=(1.0, 3.0, 0.4))
     c = build_connectivity(F, len(V))
     targets = make_targets("equal-areas", V, F, c.vertex_degree)
-    angles, excess, positions, _ = solve.feasible_start(c, V)
+    angles, excess, positions, _ = starts.feasible_start(c, V)
     dropped = solve.independent_vertices(positions)
     return c, targets, angles, excess, dropped
 
 
-def test_area_continuation_reruns_a_step_that_ends_far_from_feasible(monkeypatch):
+def test_area_continuation_reruns_a_step_that_ends_far_from_feasible():
     # A step whose capped run ends with its equalities off by more than AREA_CONTINUATION_VIOLATION
     # is run again from there (at most AREA_CONTINUATION_EXTRA_RUNS times) once the halvings are
     # spent (none here). This ellipsoid's steps end within 4e-4 even when capped at a few
@@ -342,22 +347,20 @@ def test_area_continuation_reruns_a_step_that_ends_far_from_feasible(monkeypatch
         return AngleNLP(c, tg, "log-chord", dropped_vertices=dropped, area_form="log")
 
     x0 = nlp_for(targets, None).pack(angles, excess)
-    monkeypatch.setattr(solve, "AREA_CONTINUATION_ITERATIONS", 3)
-    monkeypatch.setattr(solve, "AREA_CONTINUATION_VIOLATION", 1e-6)
-    monkeypatch.setattr(solve, "AREA_CONTINUATION_HALVINGS", 0)
+    settings = SolverSettings(area_continuation_iterations=3, area_continuation_violation=1e-6,
+                              area_continuation_halvings=0)
     violation, names = {}, {}
     for extra in (0, 20):
-        monkeypatch.setattr(solve, "AREA_CONTINUATION_EXTRA_RUNS", extra)
         stages = []
-        x = solve.area_continuation(nlp_for, targets, x0, c.n_faces, dict(solve.DEFAULT_IPOPT_OPTIONS),
-                                    stages=stages)
+        x = solve.area_continuation(nlp_for, targets, x0, c.n_faces, dict(settings.ipopt_options),
+                                    stages=stages, settings=settings.replace(area_continuation_extra_runs=extra))
         violation[extra] = np.max(np.abs(nlp_for(targets, None).evaluate(x)[1]))
         names[extra] = [s["name"] for s in stages]
     assert not any("-more" in n for n in names[0]) and any("-more" in n for n in names[20])
-    assert violation[0] > solve.AREA_CONTINUATION_VIOLATION >= violation[20]
+    assert violation[0] > settings.area_continuation_violation >= violation[20]
 
 
-def test_area_continuation_halves_the_step_when_a_rerun_drifts_further(monkeypatch):
+def test_area_continuation_halves_the_step_when_a_rerun_drifts_further():
     # The walk's control flow with scripted runs: a step that ends far is re-run while that brings
     # it nearer; once a re-run ends no nearer, the step is halved and tried from the last point
     # the walk reached (not from the drifted one).
@@ -388,10 +391,9 @@ def test_area_continuation_halves_the_step_when_a_rerun_drifts_further(monkeypat
             return 0.0, np.array([self.violation_of[int(x[0])]])
 
     scripted = ScriptedNLP()
-    monkeypatch.setattr(solve, "AREA_CONTINUATION_EXTRA_RUNS", 3)
-    monkeypatch.setattr(solve, "AREA_CONTINUATION_HALVINGS", 1)
+    settings = SolverSettings(area_continuation_extra_runs=3, area_continuation_halvings=1)
     stages = []
-    x = solve.area_continuation(lambda tg, x: scripted, targets, x0, t, {}, stages=stages)
+    x = solve.area_continuation(lambda tg, x: scripted, targets, x0, t, {}, stages=stages, settings=settings)
     names = [s["name"] for s in stages]
     assert names == ["area-continuation-1/2", "area-continuation-1/2-more1", "area-continuation-1/2-more2",
                      "area-continuation-1/4", "area-continuation-1/2", "area-continuation-3/4",
@@ -403,14 +405,14 @@ def test_area_continuation_halves_the_step_when_a_rerun_drifts_further(monkeypat
     x0[0] = np.log(1e-6)                                 # a corner below the margin at the start
     floors.clear()
     ends = iter([0.01] * 2)
-    solve.area_continuation(lambda tg, x: scripted, targets, x0, t, {})
+    solve.area_continuation(lambda tg, x: scripted, targets, x0, t, {}, settings=settings)
     floor = solve.continuation_floor(x0, t, 1e-4)
     assert floor[0] == np.log(1e-6) - 0.1 and np.all(floor[1:] == np.log(1e-4))
-    assert all(ineq is True and np.array_equal(lower, floor) and mu == solve.AREA_CONTINUATION_OPTIONS["mu_init"]
+    assert all(ineq is True and np.array_equal(lower, floor) and mu == settings.area_continuation_options["mu_init"]
                for ineq, lower, mu in floors) and len(floors) == 2
 
 
-def test_area_continuation_halves_a_step_that_ends_far_and_retries_from_the_last_good_point(monkeypatch):
+def test_area_continuation_halves_a_step_that_ends_far_and_retries_from_the_last_good_point():
     # With no re-runs, a step that ends further than AREA_CONTINUATION_VIOLATION is tried again with
     # half the step from the point the walk had reached, AREA_CONTINUATION_HALVINGS times in all; the walk still
     # ends at the targets (tau = 1). Each run is recorded, so the runs' starts show where it went on from.
@@ -429,14 +431,13 @@ def test_area_continuation_halves_a_step_that_ends_far_and_retries_from_the_last
         return RecordingNLP(c, tg, "log-chord", dropped_vertices=dropped, area_form="log")
 
     x0 = nlp_for(targets, None).pack(angles, excess)
-    monkeypatch.setattr(solve, "AREA_CONTINUATION_ITERATIONS", 3)
-    monkeypatch.setattr(solve, "AREA_CONTINUATION_VIOLATION", 1e-6)     # every capped step ends "far"
-    monkeypatch.setattr(solve, "AREA_CONTINUATION_EXTRA_RUNS", 0)
-    monkeypatch.setattr(solve, "AREA_CONTINUATION_HALVINGS", 2)
+    settings = SolverSettings(area_continuation_iterations=3,
+                              area_continuation_violation=1e-6,     # every capped step ends "far"
+                              area_continuation_extra_runs=0, area_continuation_halvings=2)
     stages = []
-    x = solve.area_continuation(nlp_for, targets, x0, c.n_faces, dict(solve.DEFAULT_IPOPT_OPTIONS),
-                                stages=stages)
-    n_steps = int(np.ceil(np.max(np.abs(np.log(excess / targets.excess))) / solve.AREA_CONTINUATION_STEP))
+    x = solve.area_continuation(nlp_for, targets, x0, c.n_faces, dict(settings.ipopt_options),
+                                stages=stages, settings=settings)
+    n_steps = int(np.ceil(np.max(np.abs(np.log(excess / targets.excess))) / settings.area_continuation_step))
     taus = [float(Fraction(s["name"].rsplit("-", 1)[1])) for s in stages]
     # 1/n far, 1/(2n) far, then steps of 1/(4n) from x0 to 1
     expected = [1 / n_steps, 1 / (2 * n_steps)] + [k / (4 * n_steps) for k in range(1, 4 * n_steps + 1)]
@@ -474,7 +475,7 @@ def test_excess_gauge_is_stationary_for_sum_of_squared_excesses_and_stays_valid(
 
     V, F = ellipsoid(2, axes=(1.0, 3.0, 0.4))
     c = build_connectivity(F, len(V))
-    area_centred, _ = solve.starting_positions(c, V)
+    area_centred, _ = starts.starting_positions(c, V)
     pushed = mobius_centre(area_centred, np.where(area_centred[:, 0] > 0, 30.0, 1.0))  # off-centre
     moved = excess_gauge(pushed, F)
 
@@ -491,7 +492,8 @@ def test_excess_gauge_is_stationary_for_sum_of_squared_excesses_and_stays_valid(
 
 
 def test_margin_restart_never_lifts_a_corner_far():
-    from sphere_nlp.solve import MAX_MARGIN_LIFT, margin_restart
+    from sphere_nlp.solve import margin_restart
+    MAX_MARGIN_LIFT = SETTINGS.max_margin_lift
     margin, t = 1e-4, 2
     log_margin = np.log(margin)
     start = np.log(np.array([0.5, 0.5, 2.0, 6e-7, 0.3, 2.8, 0.01, 0.02]))   # a start corner of 6e-7
@@ -520,7 +522,7 @@ def test_margin_restart_never_lifts_a_corner_far():
     assert not from_equality and np.array_equal(restart[6:], start[6:])
     # With no lift limit (after a diverged direct margin stage) the equality result is kept as it
     # is: its far corner keeps its own size as bound instead of being lifted.
-    restart, lower, from_equality = margin_restart(far, start, t, margin, max_lift=np.inf)
+    restart, lower, from_equality = margin_restart(far, start, t, margin, any_lift=True)
     assert from_equality and np.array_equal(restart, far) and lower[1] == pytest.approx(far[1] - 0.1)
 
 
@@ -534,8 +536,8 @@ def test_falls_back_to_the_equality_stage_when_the_direct_margin_stage_diverges(
     verdicts = []
     real = solve._diverged
 
-    def first_run_diverged(connectivity, nlp, x):
-        verdicts.append(real(connectivity, nlp, x))
+    def first_run_diverged(connectivity, nlp, x, settings):
+        verdicts.append(real(connectivity, nlp, x, settings))
         return len(verdicts) == 1
 
     monkeypatch.setattr(solve, "_diverged", first_run_diverged)
@@ -551,9 +553,10 @@ def test_after_two_diverged_runs_the_margin_stage_starts_from_the_feasible_start
     # If the equality stage of the fall-back diverges too, neither its result nor the continuation's
     # end (the diverged direct run's start) may be the margin stage's start.
     from sphere_nlp import solve
+    from sphere_nlp.starts import feasible_start
 
     calls, starts = [], []
-    monkeypatch.setattr(solve, "_diverged", lambda connectivity, nlp, x: calls.append(1) or len(calls) <= 2)
+    monkeypatch.setattr(solve, "_diverged", lambda connectivity, nlp, x, settings: calls.append(1) or len(calls) <= 2)
     real_restart = solve.margin_restart
 
     def recording_restart(x_equality, x_start, *args, **kw):
@@ -567,7 +570,7 @@ def test_after_two_diverged_runs_the_margin_stage_starts_from_the_feasible_start
     assert names[:3] == ["margin", "equality", "margin"]
     (_, continuation_end), (x_equality, fallback) = starts
     c = build_connectivity(F, len(V))
-    angles, excess, _, _ = solve.feasible_start(c, V, gauge="area")
+    angles, excess, _, _ = feasible_start(c, V, gauge="area")
     x0 = AngleNLP(c, make_targets("original-areas", V, F, c.vertex_degree)).pack(angles, excess)
     assert np.allclose(fallback, x0) and np.allclose(x_equality, x0)
     assert not np.allclose(continuation_end, x0)
@@ -586,7 +589,7 @@ def _small_log_chord_problem():
     V, F = ellipsoid(1)
     c = build_connectivity(F, len(V))
     targets = make_targets("original-angles", V, F, c.vertex_degree)
-    angles, excess, positions, _ = solve.feasible_start(c, V)
+    angles, excess, positions, _ = starts.feasible_start(c, V)
     nlp = AngleNLP(c, targets, dropped_vertices=solve.independent_vertices(positions))
     return c, nlp, nlp.pack(angles, excess)
 
@@ -610,9 +613,9 @@ def test_a_run_that_stays_infeasible_is_stopped_as_diverged():
     c, nlp, x = _small_log_chord_problem()
     x[:5] += 0.3                                  # infeasible: the first iterates violate (7)-(8)
     seen = []
-    run = nlp.solve(x, options=solve.DEFAULT_IPOPT_OPTIONS, abort_violation=1e-300, abort_iterations=3,
+    run = nlp.solve(x, options=SETTINGS.ipopt_options, abort_violation=1e-300, abort_iterations=3,
                     progress=lambda it, f, viol, elapsed: seen.append(viol))
     assert run["status"] == "Diverged" and not run["success"]
     assert len(seen) == 3 and min(seen) > 1e-300
-    run = nlp.solve(x, options=solve.DEFAULT_IPOPT_OPTIONS)
+    run = nlp.solve(x, options=SETTINGS.ipopt_options)
     assert run["success"] and solve.max_constraint_violation(c, *nlp.unpack(run["x"])) < 1e-8

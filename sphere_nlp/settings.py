@@ -1,0 +1,186 @@
+"""The solver's tuning constants, in one frozen object.
+
+:class:`SolverSettings` holds every constant the staged log-chord solve uses
+(:func:`sphere_nlp.solve.solve_angles`), so that a caller or a test varies them by value instead of
+patching module globals:
+
+>>> from sphere_nlp.settings import SolverSettings
+>>> settings = SolverSettings(area_continuation_iterations=10)
+>>> settings.area_continuation_iterations, SolverSettings().area_continuation_iterations
+(10, 30)
+>>> settings.replace(excess_window=2.5).excess_window
+2.5
+
+Each field says what it does in a line or two; the measurements that chose its value are in
+docs/tuning.md, under the field's name.
+"""
+
+import dataclasses
+from dataclasses import dataclass, field
+from types import MappingProxyType
+
+import numpy as np
+
+# IPOPT options of every run (see docs/tuning.md, "ipopt_options", for each choice).
+DEFAULT_IPOPT_OPTIONS = MappingProxyType({
+    "tol": 1e-8,
+    # The unfolding needs the edge lengths to agree: IPOPT's default (1e-4) is far too loose.
+    "constr_viol_tol": 1e-10,
+    "max_iter": 3000,
+    "print_level": 0,
+    "sb": "yes",
+    # Bounds kept exact: with IPOPT's relaxation an angle bounded by 0 can end slightly negative.
+    "bound_relax_factor": 0.0,
+    # AMD ordering for MUMPS: its automatic choice, and AMF, fill in badly on these KKT systems.
+    "mumps_pivot_order": 0,
+    # No MC64 matching and no scaling in MUMPS: the analysis otherwise used the first matrix's values.
+    "mumps_permuting_scaling": 0,
+    "mumps_scaling": 0,
+    # MUMPS's solves are accurate enough: refine a search direction only when its residual asks.
+    "min_refinement_steps": 0,
+    # The filter's cap on the constraint violation (1-norm), theta_max_fact * max(1, start's):
+    # IPOPT's 1e4 let one step leave the solution set for good.
+    "theta_max_fact": 10.0,
+})
+
+# The area modes measure the filter's cap in the max-norm and set it to the start's violation (or
+# 1): summed over 10^4-10^5 constraints, the 1-norm let single vertex sums go off by pi.
+AREA_MODE_IPOPT_OPTIONS = MappingProxyType({
+    "constraint_violation_norm_type": "max-norm",
+    "theta_max_fact": 1.0,
+})
+
+# The angle modes' first margin run starts at a feasible point with a small barrier parameter: its
+# bounds are far from most corners, and IPOPT's mu_init 0.1 first pushed into the interior and back.
+ANGLE_MODE_MARGIN_OPTIONS = MappingProxyType({"mu_init": 1e-6})
+
+# A warm-started run (re-centred window, inequality stage from the equality solution): a small
+# barrier and small bound pushes, so that IPOPT stays near the point it starts from.
+WARM_START_OPTIONS = MappingProxyType({
+    "warm_start_init_point": "yes",
+    "mu_init": 1e-6,
+    "warm_start_bound_push": 1e-9,
+    "warm_start_bound_frac": 1e-9,
+    "warm_start_slack_bound_push": 1e-9,
+    "warm_start_slack_bound_frac": 1e-9,
+    "warm_start_mult_bound_push": 1e-9,
+})
+
+# The area continuation's steps start the barrier small, so that the floor moves other corners little.
+AREA_CONTINUATION_OPTIONS = MappingProxyType({"mu_init": 1e-4})
+
+
+def _frozen(mapping):
+    return field(default_factory=lambda: MappingProxyType(dict(mapping)))
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """Tuning constants of the staged log-chord solve (see :mod:`sphere_nlp.solve`).
+
+    Frozen: make a variant with ``SolverSettings(name=value, ...)`` or :meth:`replace`. The
+    IPOPT option mappings are read-only; pass a plain dict to replace one. docs/tuning.md gives
+    the measurements behind each default.
+
+    Attributes
+    ----------
+    ipopt_options : mapping
+        IPOPT options of every run; the caller's ``ipopt_options`` override them.
+    area_mode_ipopt_options : mapping
+        Added in the area modes: the filter's violation cap in the max-norm, at the start's.
+    angle_mode_margin_options : mapping
+        Added to the angle modes' first margin run and to the projection (a small initial barrier).
+    warm_start_options : mapping
+        Added to a run warm-started from an earlier one's multipliers.
+    excess_window : float
+        Area modes: each run keeps every log e within this of where it started (a trust region
+        against the flat direction of scaling tiny triangles together).
+    angle_mode_excess_window : float
+        The same for the angle modes, which start in the margin stage at a feasible point.
+    max_window_rounds : int
+        Runs of one stage at most: a run that ends on its window is re-centred there and repeated.
+    window_growth : float
+        Each re-centred run's window is this factor wider, and warm-started.
+    angle_margin : float
+        The margin stage keeps every u = alpha - e/2 at least this (radians); on some meshes the
+        objective's infimum is at a degenerate triangle.
+    max_margin_lift : float
+        The margin stage lifts corners below the margin to it only if that changes none of them by
+        more than this in log u (else it starts from its own start; see
+        :func:`sphere_nlp.solve.margin_restart`).
+    dropped_penalty : float
+        Weight of the penalty on the three left-out vertex sums (see :class:`sphere_nlp.nlp.AngleNLP`).
+    max_dropped_penalty : float
+        If those sums have not come back, the penalty is raised 100-fold at a time up to this.
+    feasibility_tolerance : float
+        A solve counts only if every equality (6)-(8) holds to this, whatever IPOPT reports.
+    diverged_violation : float
+        A run that ends with a larger max violation has left the solution set; runs that merely stop
+        short end far below it.
+    abort_violation, abort_iterations : float, int
+        A log-chord run is stopped as "Diverged" once its violation has stayed above
+        ``abort_violation`` for ``abort_iterations`` iterations in a row.
+    area_continuation_step : float
+        Area modes: each continuation step moves every log excess by at most this.
+    area_continuation_iterations : int
+        ... with at most this many IPOPT iterations (the steps only make a start).
+    area_continuation_violation : float
+        A step that ends further than this from the solution set (max |residual|) is run again
+        from where it ended ...
+    area_continuation_extra_runs : int
+        ... up to this many times;
+    area_continuation_halvings : int
+        and if a re-run gets no nearer, the step is halved from the last point reached, up to this
+        many times in the whole walk.
+    area_continuation_floor : bool
+        The steps keep every corner u above the margin (a corner already below it: above its own
+        start size less 10%), so that they do not collapse corners towards u = 0.
+    area_continuation_options : mapping
+        Added to the steps' IPOPT options when the floor is on (a small initial barrier).
+    area_mode_hessian : {"exact", "clipped"}
+        The Hessian the area modes hand IPOPT (:class:`sphere_nlp.nlp.AngleNLP`'s ``hessian``);
+        the angle modes use the exact one.
+    projection_iterations : int
+        Iteration cap of the projection of a stage stopped by the caller's limits (``max_iter``
+        does not apply to it; ``max_time`` does).
+    obtuse_angle : float
+        Corners above this angle where a stage starts use the obtuse form of (8) (AngleNLP).
+    start_gauge : {"excess", "area"}
+        Mobius normalisation of the angle modes' start (:func:`sphere_nlp.starts.starting_positions`);
+        the area modes keep "area" (their continuation sets the scale).
+    """
+
+    ipopt_options: MappingProxyType = _frozen(DEFAULT_IPOPT_OPTIONS)
+    area_mode_ipopt_options: MappingProxyType = _frozen(AREA_MODE_IPOPT_OPTIONS)
+    angle_mode_margin_options: MappingProxyType = _frozen(ANGLE_MODE_MARGIN_OPTIONS)
+    warm_start_options: MappingProxyType = _frozen(WARM_START_OPTIONS)
+    excess_window: float = 5.0
+    angle_mode_excess_window: float = 20.0
+    max_window_rounds: int = 6
+    window_growth: float = 2.0
+    angle_margin: float = 1e-4
+    max_margin_lift: float = 1.0
+    dropped_penalty: float = 100.0
+    max_dropped_penalty: float = 1e6
+    feasibility_tolerance: float = 1e-8
+    diverged_violation: float = 0.1
+    abort_violation: float = 1.0
+    abort_iterations: int = 50
+    area_continuation_step: float = 6.0
+    area_continuation_iterations: int = 30
+    area_continuation_violation: float = 0.2
+    area_continuation_extra_runs: int = 3
+    area_continuation_halvings: int = 3
+    area_continuation_floor: bool = True
+    area_continuation_options: MappingProxyType = _frozen(AREA_CONTINUATION_OPTIONS)
+    area_mode_hessian: str = "clipped"
+    projection_iterations: int = 50
+    obtuse_angle: float = np.pi / 2
+    start_gauge: str = "excess"
+
+    def replace(self, **changes):
+        """A copy with ``changes`` applied (:func:`dataclasses.replace`)."""
+        return dataclasses.replace(self, **changes)
+
+
+DEFAULT_SETTINGS = SolverSettings()
