@@ -7,7 +7,7 @@ IPOPT makes its KKT matrix's inertia right by adding one multiple of the identit
 Hessian. In the area modes' margin stage a few local non-convex spots (reduced-Hessian eigenvalues of
 about -1e-3..-1e-2 on 16-62 variables each) set that shift, and it then damps every soft mode of the
 rest of the mesh (curvature ~1e-3) to a fraction of its Newton step: the long tail of those stages
-(benchmarks/results.md, session 20). This script tests the remedy with an oracle: at every Hessian
+(benchmarks/results.md). This script tests the remedy with an oracle: at every Hessian
 evaluation of the margin stage it finds the smallest eigenpairs of the reduced Hessian Z^T W Z (W the
 Hessian handed to IPOPT, Z the constraints' null space) by shift-invert Lanczos on the KKT matrix, and
 for each negative one adds 2 |lambda| / 0.95 to the diagonal on the variables that hold 95% of its
@@ -64,8 +64,9 @@ def negative_directions(hessian_upper, jacobian, sigma, n_pairs):
 
 
 def main(argv=None):
-    import sphere_nlp.nlp as nlp_module
     from sphere_nlp.api import parameterize
+    from sphere_nlp.nlp import entry_positions
+    from sphere_nlp.settings import SolverSettings
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("mesh")
@@ -76,21 +77,24 @@ def main(argv=None):
     parser.add_argument("--baseline", action="store_true", help="the unmodified solve, for comparison")
     args = parser.parse_args(argv)
 
-    state = {"on": False, "log": []}
-    original_hessian = nlp_module._LogChordValues.hessian
+    state = {"log": []}
 
-    def confined_hessian(values_object, x, lam_f, lam_g):
-        values = original_hessian(values_object, x, lam_f, lam_g)
-        if not state["on"]:
+    def is_margin(stage):
+        # The margin stage and its re-centred runs (and a penalty stage after it); not the walk's
+        # steps, the equality fall-back or the projection.
+        return stage.startswith(("margin", "penalty"))
+
+    def confined_hessian(stage, evaluator, x, lam_f, lam_g, values):
+        if not is_margin(stage) or args.baseline:
             return values
         start = time.perf_counter()
-        if not hasattr(values_object, "_diagonal_positions"):
-            pattern = csc_from_casadi(values_object.hessian_sparsity, np.ones(len(values)))
+        if not hasattr(evaluator, "_diagonal_positions"):
+            pattern = csc_from_casadi(evaluator.hessian_sparsity, np.ones(len(values)))
             diagonal = np.arange(pattern.shape[0])
-            values_object._diagonal_positions = nlp_module._positions(pattern, diagonal, diagonal)
-        _, jacobian_values = values_object.jacobian(x)
-        jacobian = csc_from_casadi(values_object.jacobian_sparsity, jacobian_values)
-        hessian_upper = csc_from_casadi(values_object.hessian_sparsity, values)
+            evaluator._diagonal_positions = entry_positions(pattern, diagonal, diagonal)
+        _, jacobian_values = evaluator.jacobian(x)
+        jacobian = csc_from_casadi(evaluator.jacobian_sparsity, jacobian_values)
+        hessian_upper = csc_from_casadi(evaluator.hessian_sparsity, values)
         shift = np.zeros(hessian_upper.shape[0])
         found = negative_directions(hessian_upper, jacobian, args.sigma, args.pairs)
         for value, vector in found:
@@ -99,35 +103,26 @@ def main(argv=None):
             support = order[:np.searchsorted(np.cumsum(squares[order]), SUPPORT_MASS) + 1]
             shift[support] = np.maximum(shift[support], args.factor * -value / SUPPORT_MASS)
         values = values.copy()
-        values[values_object._diagonal_positions] += shift
+        values[evaluator._diagonal_positions] += shift
         state["log"].append((len(found), int(np.count_nonzero(shift)), time.perf_counter() - start))
         return values
 
-    original_solve = nlp_module.AngleNLP.solve
-
-    def reporting_solve(nlp, x0, *positional, **keywords):
-        options = keywords.get("options") or {}
-        # The margin stage and its re-centred runs; not the walk's steps (mu_init 1e-4) or the projection.
-        margin = bool(keywords.get("inequalities")) and ("mu_init" not in options
-                                                        or options.get("warm_start_init_point") == "yes")
-        state["on"], state["log"] = margin and not args.baseline, []
-        run = original_solve(nlp, x0, *positional, **keywords)
-        stats = nlp._solver(keywords.get("inequalities", False), options)[0].stats()
-        shifted = sum(1 for size in stats.get("iterations", {}).get("regularization_size", [])[1:] if size > 0)
+    def report(stage, nlp, run):
+        margin = is_margin(stage)
+        shifted = sum(1 for size in (run.stats or {}).get("iterations", {}).get("regularization_size", [])[1:]
+                      if size > 0)
         line = "%-28s %4d iterations  objective %.6f  %6.1f s  IPOPT shifted the whole Hessian on %d" % (
-            run["status"], run["iterations"], run["objective"], run["time_s"], shifted)
+            run.status, run.iterations, run.objective, run.time_s, shifted)
         if state["log"]:
             log = np.array(state["log"])
             line += ("\n    confined shifts: negative directions on %d iterations, median %d variables shifted, "
                      "detection median %.2f s" % (np.count_nonzero(log[:, 0]), np.median(log[:, 1]), np.median(log[:, 2])))
         print(("margin  " if margin else "        ") + line, flush=True)
-        state["on"] = False
-        return run
+        state["log"] = []
 
-    nlp_module._LogChordValues.hessian = confined_hessian
-    nlp_module.AngleNLP.solve = reporting_solve
     start = time.perf_counter()
-    result = parameterize(args.mesh, args.mode, check=False)
+    result = parameterize(args.mesh, args.mode, check=False,
+                          settings=SolverSettings(on_run=report, modify_hessian=confined_hessian))
     print("%s: %s, %d iterations, objective %.6f, certified %s, %.1f s"
           % (Path(args.mesh).name, result.status, result.iterations, result.objective, result.certificate.valid,
              time.perf_counter() - start))

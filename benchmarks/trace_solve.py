@@ -8,7 +8,7 @@ start ``x0``, result ``x`` and multipliers ``lam_g``, ``lam_x`` (log-chord varia
 corners, then log e for the t triangles), so a later stage can be studied from a saved point. With
 ``--checkpoint-every K`` it also saves the current iterate every K iterations to OUT/checkpoint.npz
 (``x``, ``lam_g``, ``lam_x``, ``run``, ``iteration``, ``objective``), so that a run stopped before its end
-(a session's time limit, a cap) still leaves its last point behind. ``finish_trace.py`` turns the last run into a certified sphere and a
+(a time limit, a cap) still leaves its last point behind. ``finish_trace.py`` turns the last run into a certified sphere and a
 ``compare.json`` row.
 """
 
@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
 def main(argv=None):
-    import sphere_nlp.nlp as nlp_module
     from sphere_nlp.api import parameterize
+    from sphere_nlp.settings import SolverSettings
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("mesh")
@@ -36,21 +36,18 @@ def main(argv=None):
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    original_solve = nlp_module.AngleNLP.solve
     runs = [0]
+
+    def save_run(stage, nlp, run):
+        runs[0] += 1
+        np.savez(out / ("run%d.npz" % runs[0]), x0=run.x0, x=run.x, lam_g=run.lam_g, lam_x=run.lam_x)
+        print("run %d: %s, %d iterations, objective %.10g, %.1f s"
+              % (runs[0], run.status, run.iterations, run.objective, run.time_s), flush=True)
+
+    on_iterate = None
     if args.checkpoint_every > 0:
         # the run in progress is the one after those finished (numbered as run<k>.npz)
-        checkpoint_iterates(out / "checkpoint.npz", args.checkpoint_every, nlp_module, lambda: runs[0] + 1)
-
-    def saving_solve(self, x0, *pos, **kw):
-        run = original_solve(self, x0, *pos, **kw)
-        runs[0] += 1
-        np.savez(out / ("run%d.npz" % runs[0]), x0=x0, x=run["x"], lam_g=run["lam_g"], lam_x=run["lam_x"])
-        print("run %d: %s, %d iterations, objective %.10g, %.1f s"
-              % (runs[0], run["status"], run["iterations"], run["objective"], run["time_s"]), flush=True)
-        return run
-
-    nlp_module.AngleNLP.solve = saving_solve
+        on_iterate = checkpoint_iterates(out / "checkpoint.npz", args.checkpoint_every, lambda: runs[0] + 1)
     start = time.perf_counter()
 
     def progress(stage, iteration, objective, violation, elapsed):
@@ -58,30 +55,25 @@ def main(argv=None):
               % (time.perf_counter() - start, stage, iteration, objective, violation), flush=True)
 
     result = parameterize(args.mesh, args.mode, progress=progress, max_time=args.max_time,
-                          ipopt_options={"output_file": str(out / "ipopt.log"), "file_print_level": 5})
+                          ipopt_options={"output_file": str(out / "ipopt.log"), "file_print_level": 5},
+                          settings=SolverSettings(on_run=save_run, on_iterate=on_iterate))
     print(result)
     for stage in result.stages:
         print(stage)
 
 
-def checkpoint_iterates(path, every, nlp_module, current_run):
-    """Make IPOPT's iteration callback save (x, multipliers) to ``path`` every ``every`` iterations,
-    labelled with ``current_run()``."""
-    import casadi as ca
+def checkpoint_iterates(path, every, current_run):
+    """An ``on_iterate`` hook (SolverSettings) saving (x, multipliers) to ``path`` every ``every``
+    iterations, labelled with ``current_run()``."""
 
-    names = ca.nlpsol_out()
-    original_eval = nlp_module._ProgressCallback.eval
-
-    def saving_eval(self, arg):
-        if self.iteration % every == 0:
-            values = {name: np.asarray(arg[names.index(name)]).ravel() for name in ("x", "lam_g", "lam_x")}
+    def save(stage, iteration, x, lam_g, lam_x, objective):
+        if iteration % every == 0:
             temporary = path.with_name(path.stem + ".tmp.npz")
-            np.savez(temporary, run=current_run(), iteration=self.iteration,
-                     objective=float(arg[names.index("f")]), **values)
+            np.savez(temporary, run=current_run(), iteration=iteration, objective=objective,
+                     x=x, lam_g=lam_g, lam_x=lam_x)
             temporary.replace(path)
-        return original_eval(self, arg)
 
-    nlp_module._ProgressCallback.eval = saving_eval
+    return save
 
 
 if __name__ == "__main__":

@@ -13,20 +13,16 @@ from .certify import Certificate, certify, spherical_angles
 from .repair import prepare_mesh
 from .metrics import distortion_summary
 from .mesh_io import check_mesh_path, load_mesh, write_json, write_mesh, write_npz
-from .nlp import DEFAULT_FORMULATION, FORMULATIONS
+from .nlp import DEFAULT_FORMULATION, FORMULATIONS, status_kind
 from .solve import ON_LIMIT, solve_angles
 from .targets import MODES, make_targets
 from .texture import spherical_uv
 from .unfold import unfold
 
 
-# IPOPT statuses of a finished solve; anything else (limits, failures) is not a result.
-SOLVED_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-
-
 def solve_failure_message(status, iterations):
     """One line saying why an angle solve is not a result (IPOPT's status, or the constraints)."""
-    if status in SOLVED_STATUSES:
+    if status_kind(status) == "solved":
         # IPOPT converged, but to angles that break a constraint: a zero or negative angle or excess
         # ((3)-(5)), or an equality (6)-(8) off by more than 1e-8.
         return ("the angle solve ended outside the constraints: a zero or negative angle or excess, or "

@@ -36,6 +36,7 @@ triangle (multiplying it out couples the two triangles of every edge and is much
 """
 
 import time
+from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
@@ -51,8 +52,81 @@ EVALUATIONS = ("numpy", "casadi")
 HESSIANS = ("exact", "clipped")
 DEFAULT_FORMULATION = "log-chord"
 
-# IPOPT statuses that count as a solution; everything else is a failure.
-SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+# What the return status of a run means, the one table of them: "solved" (a result), "limit"
+# (stopped short by the caller's max_iter or max_time; its iterate can still be projected onto the
+# constraints), "diverged" (stopped by the divergence watch, see AngleNLP.solve); any other status
+# (IPOPT's failures) is "failed".
+STATUS_KINDS = {
+    "Solve_Succeeded": "solved",
+    "Solved_To_Acceptable_Level": "solved",
+    "Maximum_Iterations_Exceeded": "limit",
+    "Maximum_WallTime_Exceeded": "limit",
+    "Maximum_CpuTime_Exceeded": "limit",
+    "Diverged": "diverged",
+}
+
+
+def status_kind(status):
+    """"solved", "limit", "diverged" or "failed" (see :data:`STATUS_KINDS`).
+
+    >>> status_kind("Solved_To_Acceptable_Level"), status_kind("Restoration_Failed")
+    ('solved', 'failed')
+    """
+    return STATUS_KINDS.get(status, "failed")
+
+
+@dataclass
+class IpoptRun:
+    """The outcome of one IPOPT run (:meth:`AngleNLP.solve`).
+
+    Attributes
+    ----------
+    x0 : array
+        Where the run started.
+    x : array
+        Where it ended (IPOPT's last iterate).
+    lam_g, lam_x : arrays
+        Constraint and bound multipliers there.
+    objective : float
+    status : str
+        IPOPT's return status, or "Diverged" (see :data:`STATUS_KINDS`).
+    iterations : int
+    time_s, build_s : float
+        Seconds in IPOPT, and in building the solver before it.
+    stats : dict
+        IPOPT's statistics of the run (CasADi's ``solver.stats()``: per-iteration regularization
+        sizes, timings, ...).
+    touched : bool
+        Whether the run ended on its window on the log excesses (set by the caller that bounds them,
+        :func:`sphere_nlp.solve.windowed_solve`).
+    """
+
+    x0: np.ndarray
+    x: np.ndarray
+    lam_g: np.ndarray
+    lam_x: np.ndarray
+    objective: float
+    status: str
+    iterations: int
+    time_s: float = 0.0
+    build_s: float = 0.0
+    stats: dict = None
+    touched: bool = False
+
+    @property
+    def success(self):
+        """Whether IPOPT reports a solution (not yet whether it is feasible to the solver's tolerance)."""
+        return status_kind(self.status) == "solved"
+
+    @property
+    def stopped_by_limit(self):
+        """Whether the caller's iteration or time limit stopped the run."""
+        return status_kind(self.status) == "limit"
+
+    @property
+    def finite(self):
+        """Whether the end point is finite."""
+        return bool(np.isfinite(self.x).all())
 
 
 def _sparse_dm(matrix):
@@ -95,9 +169,10 @@ class _ProgressCallback(ca.Callback):
         self.reset(None, None, 0)
         self.construct("sphere_nlp_progress", {})
 
-    def reset(self, report, abort_violation, abort_iterations):
-        """Start a run: report to ``report`` (or nobody), watch for divergence if abort_violation."""
-        self._report = report
+    def reset(self, report, abort_violation, abort_iterations, on_iterate=None):
+        """Start a run: report to ``report`` (or nobody), watch for divergence if abort_violation,
+        hand every iterate to ``on_iterate`` (if given)."""
+        self._report, self._on_iterate = report, on_iterate
         self.iteration = 0
         self.start = time.perf_counter()
         self.abort_violation, self.abort_iterations = abort_violation, abort_iterations
@@ -132,6 +207,10 @@ class _ProgressCallback(ca.Callback):
         if self._report is not None:
             self._report(self.iteration, float(arg[ca.nlpsol_out().index("f")]), violation,
                          time.perf_counter() - self.start)
+        if self._on_iterate is not None:
+            names = ca.nlpsol_out()
+            self._on_iterate(self.iteration, *[np.asarray(arg[names.index(k)]).ravel() for k in ("x", "lam_g", "lam_x")],
+                             float(arg[names.index("f")]))
         self.iteration += 1
         # not (violation <= ...) so that a NaN violation counts as above
         above = self.abort_violation is not None and not violation <= self.abort_violation
@@ -217,7 +296,7 @@ def _vectorize(function):
     return evaluate
 
 
-def _positions(pattern, rows, cols):
+def entry_positions(pattern, rows, cols):
     """Index of each (rows[k], cols[k]) among the stored entries of the CSC matrix ``pattern``."""
     lookup = sp.csr_matrix((np.arange(1, pattern.nnz + 1, dtype=float), pattern.indices, pattern.indptr),
                            shape=pattern.shape[::-1]).T.tocsr()       # same entries, row-indexable
@@ -296,10 +375,11 @@ class _LogChordValues:
         pattern.sort_indices()
         self.hessian_sparsity = _casadi_sparsity(pattern)
         self._hessian_nnz = pattern.nnz
-        self._block_positions = _positions(pattern, hu_rows, hu_cols).reshape(t, len(upper)).T.copy()
+        self._block_positions = entry_positions(pattern, hu_rows, hu_cols).reshape(t, len(upper)).T.copy()
         if self._P is not None:
-            self._penalty_positions = _positions(pattern, rows[len(hu_rows):], cols[len(hu_cols):])
+            self._penalty_positions = entry_positions(pattern, rows[len(hu_rows):], cols[len(hu_cols):])
         self._cached_x = None
+        self.modify_hessian = None           # a run's experimental Hessian hook (AngleNLP.solve)
 
     def _at(self, x, derivatives=True):
         """At x: z (4, t), the objective f, its gradient with respect to h (flat, triangle-major),
@@ -356,6 +436,8 @@ class _LogChordValues:
             np.add.at(pd, (self._penalty_rows, self._penalty_columns), d.ravel()[self._penalty_sources])
             outer = 2 * self._penalty * lam_f * (pd.T @ pd)
             np.add.at(values, self._penalty_positions, outer[self._penalty_upper])
+        if self.modify_hessian is not None:
+            values = self.modify_hessian(self, x, lam_f, lam_g, values)
         return values
 
 
@@ -818,7 +900,8 @@ class AngleNLP:
         return self._solvers[key]
 
     def solve(self, x0, inequalities=False, lam_g0=None, lam_x0=None, options=None, progress=None,
-              excess_bounds=None, log_u_lower=None, abort_violation=None, abort_iterations=50):
+              excess_bounds=None, log_u_lower=None, abort_violation=None, abort_iterations=50,
+              on_iterate=None, modify_hessian=None):
         """Run IPOPT from x0.
 
         Parameters
@@ -842,15 +925,24 @@ class AngleNLP:
             this for ``abort_iterations`` iterations in a row: a run that has left the solution set
             that far rarely comes back and would otherwise spend its whole time limit.
         abort_iterations : int
+        on_iterate : callable(iteration, x, lam_g, lam_x, objective), optional
+            Called with every iterate (copies), for traces and checkpoints.
+        modify_hessian : callable(evaluator, x, lam_f, lam_g, values) -> values, optional
+            log-chord with numpy evaluation only, for experiments: replaces the nonzeros ``values``
+            of the Lagrangian Hessian's upper triangle handed to IPOPT at every evaluation.
+            ``evaluator`` has ``hessian_sparsity`` and ``jacobian_sparsity`` (CasADi) and
+            ``jacobian(x)`` -> (g, nonzeros); :func:`entry_positions` locates entries.
 
         Returns
         -------
-        dict with x, lam_g, lam_x, status, success, iterations, objective, time_s, build_s
+        IpoptRun
         """
         start = time.perf_counter()
         solver, callback = self._solver(inequalities, options or {})
         build_s = time.perf_counter() - start
-        callback.reset(progress, abort_violation, abort_iterations)
+        callback.reset(progress, abort_violation, abort_iterations, on_iterate)
+        if modify_hessian is not None and self._numeric is None:
+            raise ValueError("modify_hessian needs the log-chord form with numpy evaluation")
         lbx, ubx, lbg, ubg = self._bounds(inequalities, excess_bounds, log_u_lower)
         args = dict(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
         if lam_g0 is not None:
@@ -860,19 +952,18 @@ class AngleNLP:
         if lam_x0 is not None:
             args["lam_x0"] = lam_x0
         start = time.perf_counter()
-        out = solver(**args)
+        if self._numeric is not None:
+            self._numeric.modify_hessian = modify_hessian
+        try:
+            out = solver(**args)
+        finally:
+            if self._numeric is not None:
+                self._numeric.modify_hessian = None
         stats = solver.stats()
         status = stats.get("return_status", "unknown")
         if callback.aborted:
             status = "Diverged"
-        return {
-            "x": np.asarray(out["x"]).ravel(),
-            "lam_g": np.asarray(out["lam_g"]).ravel(),
-            "lam_x": np.asarray(out["lam_x"]).ravel(),
-            "objective": float(out["f"]),
-            "status": status,
-            "success": status in SUCCESS_STATUSES,
-            "iterations": int(stats.get("iter_count", 0)),
-            "time_s": time.perf_counter() - start,
-            "build_s": build_s,
-        }
+        return IpoptRun(x0=np.array(x0, dtype=float).ravel(), x=np.asarray(out["x"]).ravel(),
+                        lam_g=np.asarray(out["lam_g"]).ravel(), lam_x=np.asarray(out["lam_x"]).ravel(),
+                        objective=float(out["f"]), status=status, iterations=int(stats.get("iter_count", 0)),
+                        time_s=time.perf_counter() - start, build_s=build_s, stats=stats)

@@ -148,6 +148,19 @@ class SolverSettings:
     start_gauge : {"excess", "area"}
         Mobius normalisation of the angle modes' start (:func:`sphere_nlp.starts.starting_positions`);
         the area modes keep "area" (their continuation sets the scale).
+    on_run : callable(stage, nlp, run), optional
+        Called after every IPOPT run with the run's name (e.g. "margin", "margin-recentred",
+        "area-continuation-1/2"), its :class:`sphere_nlp.nlp.AngleNLP` and its
+        :class:`sphere_nlp.nlp.IpoptRun` (start, end point, multipliers, status): for traces and
+        benchmarks to observe the solve. It may return an IpoptRun to use instead (for
+        experiments and tests, e.g. to inject a failure); None keeps the run. Not a tuning
+        constant; the default None does nothing.
+    on_iterate : callable(stage, iteration, x, lam_g, lam_x, objective), optional
+        Called with every IPOPT iterate of every run (copies), for traces and checkpoints.
+    modify_hessian : callable(stage, evaluator, x, lam_f, lam_g, values) -> values, optional
+        For experiments only: replaces the Lagrangian Hessian handed to IPOPT at every evaluation
+        of every run (see :meth:`sphere_nlp.nlp.AngleNLP.solve`'s ``modify_hessian``); the
+        result is then no longer the solver's.
     """
 
     ipopt_options: MappingProxyType = _frozen(DEFAULT_IPOPT_OPTIONS)
@@ -177,6 +190,9 @@ class SolverSettings:
     projection_iterations: int = 50
     obtuse_angle: float = np.pi / 2
     start_gauge: str = "excess"
+    on_run: object = None
+    on_iterate: object = None
+    modify_hessian: object = None
 
     def replace(self, **changes):
         """A copy with ``changes`` applied (:func:`dataclasses.replace`)."""

@@ -18,8 +18,6 @@ formulation, and the three redundant vertex constraints are left out (see
    little (in log u they are simple bounds, mostly far from active) and the optimum is often at a
    degenerate triangle, which an equality stage chases towards log u = -inf (see
    docs/tuning.md, "angle_mode_excess_window", for the iterations this saves).
-
-The tuning constants are the fields of :class:`sphere_nlp.settings.SolverSettings`.
 3. Only if that run diverged (left the solution set): "equality", the same without the margin, then
    "margin" again from its result, or from the start if that diverged too.
 4. "penalty-1e+04", "penalty-1e+06", only if the left-out vertex sums did not come back: again
@@ -34,7 +32,11 @@ The tuning constants are the fields of :class:`sphere_nlp.settings.SolverSetting
 3. Only if the result has a non-positive angle or excess, or e >= 2 alpha somewhere, IPOPT again with
    the inequalities (3)-(5) added, warm-started from stage 2.
 
-Plain numpy in and out; CasADi stays in :mod:`sphere_nlp.nlp`.
+Each stage is a function of its own (:func:`margin_stage`, :func:`equality_fallback`,
+:func:`restore_dropped_sums`, :func:`all_constraints_stage`, :func:`area_continuation`,
+:func:`project_onto_constraints`) over :func:`windowed_solve`; :func:`solve_angles` runs them top
+down. The tuning constants are the fields of :class:`sphere_nlp.settings.SolverSettings`; its
+``on_run`` sees every IPOPT run. Plain numpy in and out; CasADi stays in :mod:`sphere_nlp.nlp`.
 """
 
 from dataclasses import dataclass, field, replace
@@ -48,8 +50,6 @@ from .starts import initial_point
 
 # What a margin stage stopped by the caller's limits yields (solve_angles's on_limit).
 ON_LIMIT = ("fail", "project")
-# IPOPT statuses of a run stopped short by the caller's limits (max_iter, max_time).
-LIMIT_STATUSES = ("Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded")
 
 
 @dataclass
@@ -178,14 +178,15 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     vertices : (n, 3) array, optional
         3D positions (same numbering as ``connectivity``); used for the starting point.
     start : {"auto", "conformal", "embedding", "linear"} or (n, 3) array, optional
-        Starting point: the angles of a valid spherical triangulation (see
-        :func:`sphere_nlp.starts.starting_positions`), or the paper's linear least-squares start. Default "auto"
-        for log-chord, "linear" for the paper's forms. An array is a certified spherical
-        triangulation of the mesh to start from (unit vectors, ``connectivity``'s numbering), for
-        instance a coarser mesh's solution carried over (:mod:`sphere_nlp.hierarchy`).
-
+        Starting point (:func:`sphere_nlp.starts.initial_point`): the angles of a valid spherical
+        triangulation (see :func:`sphere_nlp.starts.starting_positions`), or the paper's linear
+        least-squares start. Default "auto" for log-chord, "linear" for the paper's forms. An
+        array is a certified spherical triangulation of the mesh to start from (unit vectors,
+        ``connectivity``'s numbering), for instance a coarser mesh's solution carried over
+        (:mod:`sphere_nlp.hierarchy`).
     settings : SolverSettings, optional
-        The tuning constants (default :class:`~sphere_nlp.settings.SolverSettings` ()).
+        The tuning constants (default :class:`~sphere_nlp.settings.SolverSettings` ()), and the
+        ``on_run`` hook.
 
     Returns
     -------
@@ -194,193 +195,329 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     settings = DEFAULT_SETTINGS if settings is None else settings
     if on_limit not in ON_LIMIT:
         raise ValueError("on_limit must be one of %s, not %r" % (ON_LIMIT, on_limit))
-    options = dict(settings.ipopt_options)
-    if targets.area_weight > 0 and formulation == "log-chord":
-        options.update(settings.area_mode_ipopt_options)
-    if max_iter is not None:
-        options["max_iter"] = int(max_iter)
-    if max_time is not None:
-        options["max_wall_time"] = float(max_time)
-    options.update(ipopt_options or {})
-    # Warm-started runs: small barrier and bound pushes, but the caller's options still win.
-    warm_options = dict(options, **settings.warm_start_options)
-    warm_options.update(ipopt_options or {})
-
-    def stage_progress(name):
-        if progress is None:
-            return None
-        return lambda it, f, viol, elapsed: progress(name, it, f, viol, elapsed)
-
-    stages = []
     if start is None:
         start = "auto" if formulation == "log-chord" else "linear"
     gauge = settings.start_gauge if targets.area_weight == 0 else "area"
     initial = initial_point(connectivity, targets, start, vertices, gauge)
-    init_angles, init_excess, start_kind = initial.angles, initial.excess, initial.kind
+    context = _Context.make(connectivity, targets, formulation, settings, ipopt_options, max_iter, max_time,
+                            progress, initial)
     if formulation == "log-chord":
-        dropped = independent_vertices(initial.positions) if initial.positions is not None else []
-        # Corners obtuse at the start get the well-conditioned form of (8) near pi (AngleNLP).
-        obtuse = init_angles > settings.obtuse_angle
-        # The area modes hand IPOPT the clipped Hessian (see SolverSettings.area_mode_hessian); the angle modes the exact one.
-        hessian = settings.area_mode_hessian if targets.area_weight > 0 else "exact"
+        return _solve_log_chord(context, on_limit)
+    return _solve_paper_form(context)
 
-        def log_chord_nlp(targets, obtuse_corners, dropped_vertices=dropped, **keywords):
-            return AngleNLP(connectivity, targets, formulation, dropped_vertices=dropped_vertices,
-                            obtuse_corners=obtuse_corners, hessian=hessian, angle_margin=settings.angle_margin,
-                            **dict(dict(dropped_penalty=settings.dropped_penalty), **keywords))
 
-        nlp = log_chord_nlp(targets, obtuse)
-        t = connectivity.n_faces
-        x0 = nlp.pack(init_angles, init_excess)
+@dataclass
+class _Context:
+    """What the stages of one solve share: the problem, the IPOPT options, the log of runs.
 
-        def obtuse_at(x):
-            return nlp.unpack(x)[0] > settings.obtuse_angle
+    ``options`` are every run's IPOPT options, ``warm_options`` those of a run warm-started from
+    another's multipliers, ``first_options`` those of the first margin run (the angle modes' small
+    initial barrier; None: ``options``); ``window`` is the half-width of the trust region on the
+    log excesses; ``stages`` collects the record of every run.
+    """
 
-        mode_window = settings.excess_window if targets.area_weight > 0 else settings.angle_mode_excess_window
+    connectivity: object
+    targets: object
+    formulation: str
+    settings: object
+    options: dict
+    warm_options: dict
+    first_options: dict
+    progress: object
+    initial: object
+    dropped: list
+    hessian: str
+    window: float
+    stages: list = field(default_factory=list)
 
-        def windowed_solve(x_start, name, inequalities=False, recentre=True, log_u_lower=None,
-                           warm_from=None, first_options=None):
-            # Bounds log e within mode_window of the current point act as a trust region: when most
-            # triangles are tiny, scaling all their excesses together barely changes (6)-(8) and, in
-            # the angle modes, not the objective either, so IPOPT took huge steps along that flat
-            # direction (armadillo.obj, 43k vertices: diverged; with the window 17 iterations). The
-            # barrier terms also convexify it. If the result touches the window, re-centre and repeat
-            # (if recentre), else report it as touched (run["touched"]). warm_from: an earlier run
-            # with the same equality constraints whose multipliers start this one.
-            x, window, previous = x_start, mode_window, warm_from
-            for round_ in range(settings.max_window_rounds):
-                log_e = x[3 * t:]
-                run_options, warm = first_options or options, {}
-                if previous is not None:
-                    run_options = warm_options
-                    lam_x = previous["lam_x"].copy()
-                    lam_x[3 * t:] = 0.0               # the old window's bounds are gone
-                    warm = dict(lam_g0=previous["lam_g"], lam_x0=lam_x)
-                run = nlp.solve(x, inequalities=inequalities, options=run_options,
-                                progress=stage_progress(name),
-                                excess_bounds=(log_e - window, log_e + window), log_u_lower=log_u_lower,
-                                abort_violation=settings.abort_violation,
-                                abort_iterations=settings.abort_iterations,
-                                **warm)
-                stages.append(_stage_record(name if round_ == 0 else "%s-recentred" % name, run))
-                moved = np.max(np.abs(run["x"][3 * t:] - log_e), initial=0.0)
-                run["touched"] = bool(moved >= 0.99 * window)
-                if not run["success"] or not np.isfinite(run["x"]).all() or not run["touched"] or not recentre:
-                    return run
-                x, previous = run["x"], run
-                window *= settings.window_growth
-            return run
-
-        x_start = x0
-        if targets.area_weight > 0:
-            # Each step, and the stages after the walk, flag the corners obtuse at their own start:
-            # the areas reshape the triangles.
-            x_start = area_continuation(nlp_for=lambda tg, x: log_chord_nlp(tg, obtuse_at(x), area_form="log"),
-                                        targets=targets, x0=x0, n_faces=t, options=options,
-                                        progress=stage_progress("area-continuation"), stages=stages,
-                                        settings=settings)
-            obtuse = obtuse_at(x_start)
-            nlp = log_chord_nlp(targets, obtuse)
-        # Straight to the margin stage: the optimum is often at a degenerate triangle (area modes
-        # nearly always), which an equality stage chases towards log u = -inf before the margin
-        # stage starts again anyway (armadillo_remeshed.obj equal-areas: 667 equality + 627 margin
-        # iterations, now 638; knight.off original-areas 1,443 iterations in all, now 188;
-        # nefertiti.obj original-angles 21 + 14, now 24; see docs/tuning.md).
+    @classmethod
+    def make(cls, connectivity, targets, formulation, settings, ipopt_options, max_iter, max_time, progress,
+             initial):
+        area_mode = targets.area_weight > 0
+        options = dict(settings.ipopt_options)
+        if area_mode and formulation == "log-chord":
+            options.update(settings.area_mode_ipopt_options)
+        if max_iter is not None:
+            options["max_iter"] = int(max_iter)
+        if max_time is not None:
+            options["max_wall_time"] = float(max_time)
+        options.update(ipopt_options or {})
+        # Warm-started runs: small barrier and bound pushes, but the caller's options still win.
+        warm_options = dict(options, **settings.warm_start_options)
+        warm_options.update(ipopt_options or {})
         first_options = None
-        if targets.area_weight == 0:
+        if not area_mode:
             first_options = dict(options, **settings.angle_mode_margin_options)
             first_options.update(ipopt_options or {})
-        restart, log_u_lower, _ = margin_restart(x_start, x_start, t, nlp.angle_margin,
-                                                 settings.max_margin_lift)
-        direct = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower,
-                                first_options=first_options)
-        if on_limit == "project" and direct["status"] in LIMIT_STATUSES and np.isfinite(direct["x"]).all():
-            # Stopped by the caller's limits: hand back its iterate made feasible, if that works.
-            projection = project_onto_constraints(connectivity, targets, nlp, direct["x"], formulation,
-                                                  dropped, options, log_u_lower, mode_window,
-                                                  progress=stage_progress("projection"), settings=settings)
-            stages.append(_stage_record("projection", projection))
-            projected = _finish(connectivity, targets, *nlp.unpack(projection["x"]), projection, stages,
-                                init_angles, init_excess, start_kind, stopped_status=direct["status"],
-                                settings=settings)
-            if projected.success:
-                return projected
-        run, with_margin = direct, True
-        if _diverged(connectivity, nlp, direct["x"], settings):
-            # The direct margin stage ran away from the solution set (hand_closed.obj
-            # original-areas: violation 5.5): the equality stage first.
-            # It gets one window: a run that ends on it is continued by the margin stage instead
-            # of being re-centred, because the triangles that pull it are often degenerating
-            # slivers (max_planck.obj: 4 re-centred equality runs, 534 iterations, chased two
-            # corners of 0.12-1 deg slivers down to 1e-7 rad and ended in Restoration_Failed; the
-            # margin stage then needed 433 more; now 38 + 64 in all).
-            run = windowed_solve(x_start, "equality", recentre=False)
-            with_margin, log_u_lower = False, None
-            equality_diverged = _diverged(connectivity, nlp, run["x"], settings)
-            if (not run["success"] or run["touched"] or equality_diverged
-                    or not np.min(run["x"][:3 * t]) > np.log(nlp.angle_margin)):
-                # The optimum lies at (or the solver ran into) a degenerate triangle, or further
-                # than the window: solve again with u >= angle_margin, from the equality result
-                # if it is usable (not diverged; its corners can look fine even then), else from
-                # the feasible start x0 (in the angle modes x_start is x0; the continuation's end
-                # is known to fail). The equality result is used however far its corners are
-                # below the margin: they keep their own size, less 10%, as bound (see
-                # margin_restart).
-                x_equality = x0 if equality_diverged else run["x"]
-                restart, log_u_lower, from_equality = margin_restart(x_equality, x0, t, nlp.angle_margin,
-                                                                     settings.max_margin_lift,
-                                                                     any_lift=True)
-                # From the equality result, warm-started with its multipliers (same equalities):
-                # a cold start's bound push broke (8) by 0.02-0.5 there (nefertiti.obj), and the
-                # barrier then had to shrink again (knight 22 -> 18 margin iterations, spot
-                # equal-angles 14 -> 9, brain equal-angles 10 -> 6, same optima).
-                run = windowed_solve(restart, "margin", inequalities=True, log_u_lower=log_u_lower,
-                                     warm_from=run if from_equality else None)
-                with_margin = True
-        penalty = settings.dropped_penalty
-        violation = max_constraint_violation(connectivity, *nlp.unpack(run["x"]))
-        while (violation > settings.feasibility_tolerance and np.isfinite(run["x"]).all()
-               and penalty < settings.max_dropped_penalty):
-            # The three left-out vertex sums come back by themselves only near the solution set
-            # (the redundancy is infinitesimal); with a weak penalty the solver can stop at a metric
-            # whose sums are off there (hand_closed.obj equal-angles: by 2.5e-3). A stiffer penalty,
-            # from that point, pulls them back (hand: 1e6 gave 1e-13, 47 s in all, where the
-            # all-constraints solve below had not finished in 15 minutes).
-            penalty *= 100
-            nlp = log_chord_nlp(targets, obtuse, dropped_penalty=penalty)
-            run = windowed_solve(run["x"], "penalty-%.0e" % penalty, inequalities=with_margin,
-                                 log_u_lower=log_u_lower)
-            violation = max_constraint_violation(connectivity, *nlp.unpack(run["x"]))
-        if violation > settings.feasibility_tolerance:
-            # Last resort: every constraint (a singular Jacobian at the solution, so slow).
-            nlp = log_chord_nlp(targets, obtuse, dropped_vertices=())
-            run = windowed_solve(x_start, "all-constraints")
-        angles, excess = nlp.unpack(run["x"])
-        return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess, start_kind,
-                       settings=settings)
+        # The three redundant vertex sums (7) left out, at vertices of the valid start (none for
+        # the linear guess, whose positions are unknown).
+        dropped = independent_vertices(initial.positions) if initial.positions is not None else []
+        return cls(connectivity=connectivity, targets=targets, formulation=formulation, settings=settings,
+                   options=options, warm_options=warm_options, first_options=first_options, progress=progress,
+                   initial=initial, dropped=dropped,
+                   hessian=settings.area_mode_hessian if area_mode else "exact",
+                   window=settings.excess_window if area_mode else settings.angle_mode_excess_window)
 
-    nlp = AngleNLP(connectivity, targets, formulation)
-    run = nlp.solve(nlp.pack(init_angles, init_excess), inequalities=False, options=options,
-                    progress=stage_progress("equality"))
-    stages.append(_stage_record("equality", run))
-    angles, excess = nlp.unpack(run["x"])
-    if violates_inequalities(angles, excess):
-        run = nlp.solve(run["x"], inequalities=True, lam_g0=run["lam_g"], options=warm_options,
-                        progress=stage_progress("inequality"))
-        if not run["success"]:
+    @property
+    def n_faces(self):
+        return self.connectivity.n_faces
+
+    def nlp(self, obtuse_corners, targets=None, dropped_vertices=None, **keywords):
+        """The log-chord NLP with this solve's left-out vertices, Hessian, margin and penalty."""
+        keywords.setdefault("dropped_penalty", self.settings.dropped_penalty)
+        return AngleNLP(self.connectivity, self.targets if targets is None else targets, self.formulation,
+                        dropped_vertices=self.dropped if dropped_vertices is None else dropped_vertices,
+                        obtuse_corners=obtuse_corners, hessian=self.hessian,
+                        angle_margin=self.settings.angle_margin, **keywords)
+
+    def obtuse_at(self, nlp, x):
+        """The corners to write in the obtuse form of (8) for a stage starting at x (AngleNLP)."""
+        return nlp.unpack(x)[0] > self.settings.obtuse_angle
+
+    def stage_progress(self, name):
+        """The caller's progress function for the stage ``name``, or None."""
+        if self.progress is None:
+            return None
+        return lambda it, f, viol, elapsed: self.progress(name, it, f, viol, elapsed)
+
+    def diverged(self, nlp, run):
+        return diverged(self.connectivity, nlp, run.x, self.settings)
+
+    def violation(self, nlp, run):
+        return max_constraint_violation(self.connectivity, *nlp.unpack(run.x))
+
+
+def run_ipopt(nlp, name, x, settings, stages=None, **solve_keywords):
+    """One IPOPT run of ``nlp`` from x (:meth:`AngleNLP.solve` with ``solve_keywords``), named
+    ``name``: shown to ``settings.on_run`` (and ``on_iterate``, ``modify_hessian``) and recorded
+    in ``stages`` (if given).
+
+    ``on_run(name, nlp, run)`` may return an :class:`~sphere_nlp.nlp.IpoptRun` to use instead (for
+    experiments and tests, e.g. to inject a failure); None keeps the run.
+    """
+    if settings.on_iterate is not None:
+        solve_keywords["on_iterate"] = lambda *iterate: settings.on_iterate(name, *iterate)
+    if settings.modify_hessian is not None:
+        solve_keywords["modify_hessian"] = lambda *arguments: settings.modify_hessian(name, *arguments)
+    run = nlp.solve(x, **solve_keywords)
+    if settings.on_run is not None:
+        replaced = settings.on_run(name, nlp, run)
+        run = run if replaced is None else replaced
+    if stages is not None:
+        stages.append(_stage_record(name, run))
+    return run
+
+
+def _solve_log_chord(context, on_limit):
+    """The log-chord stages (the module docstring), top down."""
+    settings, initial = context.settings, context.initial
+    # Corners obtuse at the start get the well-conditioned form of (8) near pi (AngleNLP).
+    obtuse = initial.angles > settings.obtuse_angle
+    nlp = context.nlp(obtuse)
+    x0 = x_start = nlp.pack(initial.angles, initial.excess)
+    if context.targets.area_weight > 0:
+        # Each step, and the stages after the walk, flag the corners obtuse at their own start:
+        # the areas reshape the triangles.
+        x_start = area_continuation(lambda tg, x: context.nlp(context.obtuse_at(nlp, x), tg, area_form="log"),
+                                    context.targets, x0, context.n_faces, context.options,
+                                    progress=context.stage_progress("area-continuation"), stages=context.stages,
+                                    settings=settings)
+        obtuse = context.obtuse_at(nlp, x_start)
+        nlp = context.nlp(obtuse)
+    run, log_u_lower = margin_stage(context, nlp, x_start)
+    if on_limit == "project" and run.stopped_by_limit and run.finite:
+        # Stopped by the caller's limits: hand back its iterate made feasible, if that works.
+        projected = _projected_solution(context, nlp, run, log_u_lower)
+        if projected.success:
+            return projected
+    with_margin = True
+    if context.diverged(nlp, run):
+        # The direct margin stage ran away from the solution set (hand_closed.obj original-areas:
+        # violation 5.5): the equality stage first.
+        run, with_margin, log_u_lower = equality_fallback(context, nlp, x_start, x0)
+    nlp, run, violation = restore_dropped_sums(context, nlp, run, obtuse, with_margin, log_u_lower)
+    if violation > settings.feasibility_tolerance:
+        nlp, run = all_constraints_stage(context, obtuse, x_start)
+    return _solution(context, *nlp.unpack(run.x), run)
+
+
+def windowed_solve(context, nlp, x_start, name, inequalities=False, recentre=True, log_u_lower=None,
+                   warm_from=None, first_options=None):
+    """IPOPT runs of one stage inside a window on the log excesses, re-centred while they end on it.
+
+    Bounds log e within ``context.window`` of the current point act as a trust region: when most
+    triangles are tiny, scaling all their excesses together barely changes (6)-(8) and, in the
+    angle modes, not the objective either, so IPOPT took huge steps along that flat direction
+    (armadillo.obj, 43k vertices: diverged; with the window 17 iterations). The barrier terms also
+    convexify it. If the result touches the window, re-centre and repeat with a window
+    ``settings.window_growth`` times wider, warm-started (if ``recentre``, at most
+    ``settings.max_window_rounds`` runs), else report it as touched (``run.touched``).
+
+    Parameters
+    ----------
+    context : _Context
+    nlp : AngleNLP
+    x_start : array
+    name : str
+        The stage's name; re-centred runs are named ``name + "-recentred"``.
+    inequalities : bool
+        Keep log u >= ``log_u_lower`` (AngleNLP.solve).
+    log_u_lower : (3t,) array, optional
+        Lower bounds on log u per corner (default: the margin everywhere).
+    warm_from : IpoptRun, optional
+        An earlier run with the same equality constraints whose multipliers start this one.
+    first_options : dict, optional
+        IPOPT options of a run that is not warm-started (default ``context.options``).
+
+    Returns
+    -------
+    IpoptRun
+        The last run, with ``touched`` set.
+    """
+    settings, t = context.settings, context.n_faces
+    x, window, previous = x_start, context.window, warm_from
+    for round_ in range(settings.max_window_rounds):
+        log_e = x[3 * t:]
+        run_options, warm = first_options or context.options, {}
+        if previous is not None:
+            run_options = context.warm_options
+            lam_x = previous.lam_x.copy()
+            lam_x[3 * t:] = 0.0               # the old window's bounds are gone
+            warm = dict(lam_g0=previous.lam_g, lam_x0=lam_x)
+        run = run_ipopt(nlp, name if round_ == 0 else "%s-recentred" % name, x, settings, context.stages,
+                        inequalities=inequalities, options=run_options, progress=context.stage_progress(name),
+                        excess_bounds=(log_e - window, log_e + window), log_u_lower=log_u_lower,
+                        abort_violation=settings.abort_violation, abort_iterations=settings.abort_iterations,
+                        **warm)
+        moved = np.max(np.abs(run.x[3 * t:] - log_e), initial=0.0)
+        run.touched = bool(moved >= 0.99 * window)
+        if not run.success or not run.finite or not run.touched or not recentre:
+            return run
+        x, previous = run.x, run
+        window *= settings.window_growth
+    return run
+
+
+def margin_stage(context, nlp, x_start):
+    """The first stage after the start (and the continuation): (9) with u >= the margin.
+
+    Straight to the margin stage: the optimum is often at a degenerate triangle (area modes nearly
+    always), which an equality stage chases towards log u = -inf before the margin stage starts
+    again anyway (docs/tuning.md, "angle_mode_excess_window"). Corners already below the margin at
+    ``x_start`` keep their own size less 10% as bound (:func:`margin_restart`).
+
+    Returns
+    -------
+    run : IpoptRun
+    log_u_lower : (3t,) array
+        The stage's lower bounds on log u.
+    """
+    restart, log_u_lower, _ = margin_restart(x_start, x_start, context.n_faces, nlp.angle_margin,
+                                             context.settings.max_margin_lift)
+    run = windowed_solve(context, nlp, restart, "margin", inequalities=True, log_u_lower=log_u_lower,
+                         first_options=context.first_options)
+    return run, log_u_lower
+
+
+def equality_fallback(context, nlp, x_start, x0):
+    """After a diverged margin stage: the equalities alone from ``x_start``, then the margin again.
+
+    The equality run gets one window: a run that ends on it is continued by the margin stage
+    instead of being re-centred, because the triangles that pull it are often degenerating slivers
+    (docs/tuning.md, "max_window_rounds"). If it degenerates, touches the window or diverges, the
+    margin stage runs again, from the equality result if usable (not diverged; its corners can look
+    fine even then), warm-started with its multipliers, else from the feasible start ``x0`` (in the
+    angle modes ``x_start`` is ``x0``; the continuation's end is known to fail). The equality
+    result is used however far its corners are below the margin: they keep their own size, less
+    10%, as bound (:func:`margin_restart`).
+
+    Returns
+    -------
+    run : IpoptRun
+    with_margin : bool
+        Whether ``run`` kept the margin (its stage had the inequalities).
+    log_u_lower : (3t,) array or None
+        Its lower bounds on log u.
+    """
+    run = windowed_solve(context, nlp, x_start, "equality", recentre=False)
+    equality_diverged = context.diverged(nlp, run)
+    if (run.success and not run.touched and not equality_diverged
+            and np.min(run.x[:3 * context.n_faces]) > np.log(nlp.angle_margin)):
+        return run, False, None
+    x_equality = x0 if equality_diverged else run.x
+    restart, log_u_lower, from_equality = margin_restart(x_equality, x0, context.n_faces, nlp.angle_margin,
+                                                         context.settings.max_margin_lift, any_lift=True)
+    run = windowed_solve(context, nlp, restart, "margin", inequalities=True, log_u_lower=log_u_lower,
+                         warm_from=run if from_equality else None)
+    return run, True, log_u_lower
+
+
+def restore_dropped_sums(context, nlp, run, obtuse, with_margin, log_u_lower):
+    """If the three left-out vertex sums have not come back, raise their penalty 100-fold at a
+    time (up to ``settings.max_dropped_penalty``) and solve again from there.
+
+    They come back by themselves only near the solution set (the redundancy is infinitesimal);
+    with a weak penalty the solver can stop at a metric whose sums are off (docs/tuning.md,
+    "max_dropped_penalty").
+
+    Returns
+    -------
+    nlp : AngleNLP
+        The NLP of the last run.
+    run : IpoptRun
+    violation : float
+        Its max constraint violation.
+    """
+    settings = context.settings
+    penalty = settings.dropped_penalty
+    violation = context.violation(nlp, run)
+    while violation > settings.feasibility_tolerance and run.finite and penalty < settings.max_dropped_penalty:
+        penalty *= 100
+        nlp = context.nlp(obtuse, dropped_penalty=penalty)
+        run = windowed_solve(context, nlp, run.x, "penalty-%.0e" % penalty, inequalities=with_margin,
+                             log_u_lower=log_u_lower)
+        violation = context.violation(nlp, run)
+    return nlp, run, violation
+
+
+def all_constraints_stage(context, obtuse, x_start):
+    """The last resort: every vertex sum (7) kept, from ``x_start`` (a singular Jacobian at the
+    solution, so slow). Returns (nlp, run)."""
+    nlp = context.nlp(obtuse, dropped_vertices=())
+    return nlp, windowed_solve(context, nlp, x_start, "all-constraints")
+
+
+def _projected_solution(context, nlp, stopped, log_u_lower):
+    """The AngleSolution of a stage stopped by the caller's limits, projected onto the constraints."""
+    projection = project_onto_constraints(context.connectivity, context.targets, nlp, stopped.x,
+                                          context.formulation, context.dropped, context.options, log_u_lower,
+                                          context.window, progress=context.stage_progress("projection"),
+                                          settings=context.settings, stages=context.stages)
+    return _solution(context, *nlp.unpack(projection.x), projection, stopped_status=stopped.status)
+
+
+def _solve_paper_form(context):
+    """The faithful and substituted forms, staged as in section 4 of the paper (module docstring)."""
+    settings, initial = context.settings, context.initial
+    nlp = AngleNLP(context.connectivity, context.targets, context.formulation)
+    x_initial = nlp.pack(initial.angles, initial.excess)
+    run = run_ipopt(nlp, "equality", x_initial, settings, context.stages, inequalities=False,
+                    options=context.options, progress=context.stage_progress("equality"))
+    if violates_inequalities(*nlp.unpack(run.x)):
+        run = run_ipopt(nlp, "inequality", run.x, settings, inequalities=True, lam_g0=run.lam_g,
+                        options=context.warm_options, progress=context.stage_progress("inequality"))
+        if not run.success:
             # A warm start from an infeasible point can stall; a cold start with the default barrier
             # parameter is slower but robust.
-            cold = dict(options)
-            run = nlp.solve(nlp.pack(init_angles, init_excess), inequalities=True, options=cold,
-                            progress=stage_progress("inequality-cold"))
-        stages.append(_stage_record("inequality", run))
-        angles, excess = nlp.unpack(run["x"])
-    return _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess, start_kind,
-                       settings=settings)
+            run = run_ipopt(nlp, "inequality-cold", x_initial, settings, inequalities=True,
+                            options=dict(context.options), progress=context.stage_progress("inequality-cold"))
+        context.stages.append(_stage_record("inequality", run))
+    return _solution(context, *nlp.unpack(run.x), run)
 
 
-def _diverged(connectivity, nlp, x, settings=DEFAULT_SETTINGS):
-    """Whether a run ended far from the solution set (not merely short of the tolerance)."""
+def diverged(connectivity, nlp, x, settings=DEFAULT_SETTINGS):
+    """Whether a run ended far from the solution set (not merely short of the tolerance):
+    non-finite, or a max violation above ``settings.diverged_violation``."""
     if not np.isfinite(x).all():
         return True
     return max_constraint_violation(connectivity, *nlp.unpack(x)) > settings.diverged_violation
@@ -455,6 +592,7 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
     progress : callable(iteration, objective, violation, elapsed), optional
     stages : list, optional
         Stage records are appended here.
+    settings : SolverSettings
 
     Returns
     -------
@@ -473,9 +611,9 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
     x, reached, step, halvings = x0, Fraction(0), Fraction(1, n_steps), 0
 
     def violation(nlp, run):
-        if not np.isfinite(run["x"]).all():
+        if not run.finite:
             return np.inf
-        return np.max(np.abs(nlp.evaluate(run["x"])[1]))
+        return np.max(np.abs(nlp.evaluate(run.x)[1]))
 
     while reached < 1:
         tau = min(reached + step, Fraction(1))
@@ -486,16 +624,13 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
             floor = dict(inequalities=True, log_u_lower=continuation_floor(x0, n_faces, nlp.angle_margin))
             step_options = dict(capped, **settings.area_continuation_options)
         name = "area-continuation-%s" % tau
-        run = nlp.solve(x, options=step_options, progress=progress, **floor)
-        if stages is not None:
-            stages.append(_stage_record(name, run))
+        run = run_ipopt(nlp, name, x, settings, stages, options=step_options, progress=progress, **floor)
         ended = violation(nlp, run)
         for attempt in range(1, settings.area_continuation_extra_runs + 1):
             if not settings.area_continuation_violation < ended < np.inf:
                 break
-            rerun = nlp.solve(run["x"], options=step_options, progress=progress, **floor)
-            if stages is not None:
-                stages.append(_stage_record("%s-more%d" % (name, attempt), rerun))
+            rerun = run_ipopt(nlp, "%s-more%d" % (name, attempt), run.x, settings, stages,
+                              options=step_options, progress=progress, **floor)
             rerun_ended = violation(nlp, rerun)
             if rerun_ended >= ended and halvings < settings.area_continuation_halvings:
                 break                           # drifting away: halve the step instead
@@ -507,7 +642,7 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
             continue
         if ended == np.inf:
             break
-        x, reached = run["x"], tau
+        x, reached = run.x, tau
     return x
 
 
@@ -528,7 +663,7 @@ def continuation_floor(x0, n_faces, angle_margin):
 
 
 def project_onto_constraints(connectivity, targets, nlp, x, formulation, dropped, options, log_u_lower,
-                             excess_window, progress=None, settings=DEFAULT_SETTINGS):
+                             excess_window, progress=None, settings=DEFAULT_SETTINGS, stages=None):
     """The feasible point nearest a log-chord iterate ``x`` (a stage stopped short), by IPOPT.
 
     The same constraints and bounds (log u >= ``log_u_lower``, log e within ``excess_window`` of
@@ -540,8 +675,8 @@ def project_onto_constraints(connectivity, targets, nlp, x, formulation, dropped
 
     Returns
     -------
-    dict
-        :meth:`sphere_nlp.nlp.AngleNLP.solve`'s result.
+    IpoptRun
+        The run, named "projection" (recorded in ``stages`` if given).
     """
     angles, excess = nlp.unpack(x)
     here = replace(targets, angles=angles, excess=excess, angle_weight=1.0, area_weight=1.0)
@@ -552,26 +687,27 @@ def project_onto_constraints(connectivity, targets, nlp, x, formulation, dropped
     projection_options["max_iter"] = settings.projection_iterations
     t = len(excess)
     log_e = x[3 * t:]
-    return projection.solve(x, inequalities=True, options=projection_options, progress=progress,
-                            excess_bounds=(log_e - excess_window, log_e + excess_window),
-                            log_u_lower=log_u_lower)
+    return run_ipopt(projection, "projection", x, settings, stages, inequalities=True, options=projection_options,
+                     progress=progress, excess_bounds=(log_e - excess_window, log_e + excess_window),
+                     log_u_lower=log_u_lower)
 
 
 def _stage_record(name, run):
     """The statistics of one IPOPT run kept in the result."""
-    return dict(name=name, **{k: run[k] for k in ("status", "iterations", "objective", "time_s", "build_s")})
+    return dict(name=name, status=run.status, iterations=run.iterations, objective=run.objective,
+                time_s=run.time_s, build_s=run.build_s)
 
 
-def _finish(connectivity, targets, angles, excess, run, stages, init_angles, init_excess, start_kind,
-            stopped_status=None, settings=DEFAULT_SETTINGS):
+def _solution(context, angles, excess, run, stopped_status=None):
     """The AngleSolution of the last run; ``stopped_status``: the run is the projection of a stage
     that IPOPT stopped with that status (see :func:`project_onto_constraints`)."""
-    violation = max_constraint_violation(connectivity, angles, excess)
-    success = bool(run["success"] and not violates_inequalities(angles, excess)
-                   and violation <= settings.feasibility_tolerance)
+    violation = max_constraint_violation(context.connectivity, angles, excess)
+    success = bool(run.success and not violates_inequalities(angles, excess)
+                   and violation <= context.settings.feasibility_tolerance)
+    initial = context.initial
     return AngleSolution(angles=angles, excess=excess, success=success,
-                         status=stopped_status or run["status"], converged=success and stopped_status is None,
-                         iterations=sum(s["iterations"] for s in stages),
-                         objective=objective_value(targets, angles, excess),
-                         max_constraint_violation=violation, stages=stages,
-                         initial_angles=init_angles, initial_excess=init_excess, start=start_kind)
+                         status=stopped_status or run.status, converged=success and stopped_status is None,
+                         iterations=sum(s["iterations"] for s in context.stages),
+                         objective=objective_value(context.targets, angles, excess),
+                         max_constraint_violation=violation, stages=context.stages,
+                         initial_angles=initial.angles, initial_excess=initial.excess, start=initial.kind)

@@ -1,5 +1,6 @@
 """Core pipeline: closed-form cases, constraint residuals, derivatives, formulations, certificates."""
 
+import dataclasses
 from fractions import Fraction
 
 import numpy as np
@@ -8,7 +9,7 @@ import pytest
 import sphere_nlp
 from sphere_nlp.certify import certify, signed_solid_angles, spherical_angles
 from sphere_nlp.connectivity import build_connectivity, validate_mesh
-from sphere_nlp.nlp import AngleNLP
+from sphere_nlp.nlp import AngleNLP, IpoptRun
 from sphere_nlp.settings import SolverSettings
 from sphere_nlp.shapes import cylinder, icosphere, octahedron, tetrahedron
 from sphere_nlp import starts
@@ -150,13 +151,13 @@ def test_numpy_and_casadi_evaluation_reach_the_same_optimum(mode):
         nlp = AngleNLP(c, targets, "log-chord", dropped_vertices=dropped,
                        obtuse_corners=angles > np.pi / 2, evaluation=evaluation)
         runs.append(nlp.solve(nlp.pack(angles, excess), options={"tol": 1e-10, "print_level": 0, "sb": "yes"}))
-    assert all(r["success"] for r in runs)
-    assert abs(runs[0]["objective"] - runs[1]["objective"]) <= 1e-10 * abs(runs[1]["objective"])
+    assert all(r.success for r in runs)
+    assert abs(runs[0].objective - runs[1].objective) <= 1e-10 * abs(runs[1].objective)
     for run in runs:
-        assert np.abs(nlp.evaluate(run["x"])[1]).max() < 1e-9
+        assert np.abs(nlp.evaluate(run.x)[1]).max() < 1e-9
     if mode == "original-angles":
-        assert runs[0]["iterations"] == runs[1]["iterations"]
-        np.testing.assert_allclose(runs[0]["x"], runs[1]["x"], atol=1e-7)
+        assert runs[0].iterations == runs[1].iterations
+        np.testing.assert_allclose(runs[0].x, runs[1].x, atol=1e-7)
 
 
 def test_vectorized_sx_function_replays_casadi_exactly():
@@ -384,8 +385,8 @@ def test_area_continuation_halves_the_step_when_a_rerun_drifts_further():
             starts.append(x)
             floors.append((bounds.get("inequalities"), bounds.get("log_u_lower"), options.get("mu_init")))
             self.violation_of[len(starts)] = next(ends)
-            return dict(x=np.full_like(x0, len(starts)), status="Maximum_Iterations_Exceeded",
-                        iterations=30, objective=0.0, time_s=0.0, build_s=0.0)
+            return IpoptRun(x0=x, x=np.full_like(x0, len(starts)), lam_g=np.zeros(0), lam_x=np.zeros(0),
+                            status="Maximum_Iterations_Exceeded", iterations=30, objective=0.0)
 
         def evaluate(self, x):
             return 0.0, np.array([self.violation_of[int(x[0])]])
@@ -424,7 +425,7 @@ def test_area_continuation_halves_a_step_that_ends_far_and_retries_from_the_last
     class RecordingNLP(AngleNLP):
         def solve(self, x0, **kw):
             run = super().solve(x0, **kw)
-            runs.append((np.array(x0), run["x"]))
+            runs.append((np.array(x0), run.x))
             return run
 
     def nlp_for(tg, x):
@@ -526,53 +527,53 @@ def test_margin_restart_never_lifts_a_corner_far():
     assert from_equality and np.array_equal(restart, far) and lower[1] == pytest.approx(far[1] - 0.1)
 
 
+def _diverging_runs(count):
+    """An ``on_run`` hook that makes the first ``count`` "margin" or "equality" runs end at NaN
+    (a diverged run, whatever IPOPT did), and the real verdicts on those runs."""
+    from sphere_nlp import solve
+
+    verdicts, starts = [], []
+
+    def on_run(stage, nlp, run):
+        if stage == "margin":
+            starts.append(run.x0)
+        if stage in ("margin", "equality") and len(verdicts) < count:
+            verdicts.append(solve.diverged(nlp.connectivity, nlp, run.x))
+            return dataclasses.replace(run, x=np.full_like(run.x, np.nan))
+        return None
+
+    return SolverSettings(on_run=on_run), verdicts, starts
+
+
 @pytest.mark.parametrize("mode", ["original-areas", "original-angles"])
-def test_falls_back_to_the_equality_stage_when_the_direct_margin_stage_diverges(monkeypatch, mode):
+def test_falls_back_to_the_equality_stage_when_the_direct_margin_stage_diverges(mode):
     # hand_closed.obj original-areas: the margin stage straight from the continuation ended with
     # violation 5.5; the equality-first path must then run and still certify. The angle modes
     # start in the margin stage too, with the same fall-back.
-    from sphere_nlp import solve
-
-    verdicts = []
-    real = solve._diverged
-
-    def first_run_diverged(connectivity, nlp, x, settings):
-        verdicts.append(real(connectivity, nlp, x, settings))
-        return len(verdicts) == 1
-
-    monkeypatch.setattr(solve, "_diverged", first_run_diverged)
+    settings, verdicts, _ = _diverging_runs(1)
     V, F = ellipsoid(2, axes=(1.0, 2.0, 0.7))
-    r = sphere_nlp.parameterize((V, F), target=mode)
+    r = sphere_nlp.parameterize((V, F), target=mode, settings=settings)
     names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
     assert names[0] == "margin" and "equality" in names[1:]
     assert verdicts[0] is False                   # the real check passed that run: no false alarm
     assert r.certificate.valid and r.max_constraint_violation <= 1e-8
 
 
-def test_after_two_diverged_runs_the_margin_stage_starts_from_the_feasible_start(monkeypatch):
+def test_after_two_diverged_runs_the_margin_stage_starts_from_the_feasible_start():
     # If the equality stage of the fall-back diverges too, neither its result nor the continuation's
     # end (the diverged direct run's start) may be the margin stage's start.
-    from sphere_nlp import solve
     from sphere_nlp.starts import feasible_start
 
-    calls, starts = [], []
-    monkeypatch.setattr(solve, "_diverged", lambda connectivity, nlp, x, settings: calls.append(1) or len(calls) <= 2)
-    real_restart = solve.margin_restart
-
-    def recording_restart(x_equality, x_start, *args, **kw):
-        starts.append((x_equality.copy(), x_start.copy()))
-        return real_restart(x_equality, x_start, *args, **kw)
-
-    monkeypatch.setattr(solve, "margin_restart", recording_restart)
+    settings, _, starts = _diverging_runs(2)
     V, F = ellipsoid(2, axes=(1.0, 2.0, 0.7))
-    r = sphere_nlp.parameterize((V, F), target="original-areas")
+    r = sphere_nlp.parameterize((V, F), target="original-areas", settings=settings)
     names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
     assert names[:3] == ["margin", "equality", "margin"]
-    (_, continuation_end), (x_equality, fallback) = starts
+    continuation_end, fallback = starts[:2]
     c = build_connectivity(F, len(V))
     angles, excess, _, _ = feasible_start(c, V, gauge="area")
     x0 = AngleNLP(c, make_targets("original-areas", V, F, c.vertex_degree)).pack(angles, excess)
-    assert np.allclose(fallback, x0) and np.allclose(x_equality, x0)
+    assert np.allclose(fallback, x0)
     assert not np.allclose(continuation_end, x0)
     assert r.certificate.valid and r.max_constraint_violation <= 1e-8
 
@@ -598,11 +599,11 @@ def test_diverged_flags_non_finite_or_far_infeasible_points_only():
     from sphere_nlp import solve
 
     c, nlp, x = _small_log_chord_problem()
-    assert not solve._diverged(c, nlp, x)
+    assert not solve.diverged(c, nlp, x)
     x_off = x.copy()
     x_off[0] += 1.0                     # one corner e times larger: a vertex sum off by far more than 0.1
-    assert solve._diverged(c, nlp, x_off)
-    assert solve._diverged(c, nlp, np.full_like(x, np.nan))
+    assert solve.diverged(c, nlp, x_off)
+    assert solve.diverged(c, nlp, np.full_like(x, np.nan))
 
 
 def test_a_run_that_stays_infeasible_is_stopped_as_diverged():
@@ -615,7 +616,7 @@ def test_a_run_that_stays_infeasible_is_stopped_as_diverged():
     seen = []
     run = nlp.solve(x, options=SETTINGS.ipopt_options, abort_violation=1e-300, abort_iterations=3,
                     progress=lambda it, f, viol, elapsed: seen.append(viol))
-    assert run["status"] == "Diverged" and not run["success"]
+    assert run.status == "Diverged" and not run.success
     assert len(seen) == 3 and min(seen) > 1e-300
     run = nlp.solve(x, options=SETTINGS.ipopt_options)
-    assert run["success"] and solve.max_constraint_violation(c, *nlp.unpack(run["x"])) < 1e-8
+    assert run.success and solve.max_constraint_violation(c, *nlp.unpack(run.x)) < 1e-8
