@@ -19,7 +19,7 @@ import scipy.sparse.linalg as spla
 from .certify import Certificate, certify
 from .conformal import (beltrami_coefficient, conformal_map, cotan_laplacian, linear_beltrami_solver,  # noqa: F401
                         lumped_mass)
-from .targets import triangle_areas_3d
+from .geometry import area_weighted_centroid, triangle_areas
 
 STARTS = ("central", "normals")
 
@@ -63,10 +63,7 @@ def _alexa_start(vertices, faces, start):
         if positions.shape != vertices.shape:
             raise ValueError("start positions must have shape %s" % (vertices.shape,))
     elif start == "central":
-        # The area-weighted surface centroid, so dense regions of the mesh do not pull the centre.
-        areas = triangle_areas_3d(vertices, faces)
-        centre = (areas[:, None] * vertices[faces].mean(axis=1)).sum(axis=0) / areas.sum()
-        positions = vertices - centre
+        positions = vertices - area_weighted_centroid(vertices, faces)
     elif start == "normals":
         # Area-weighted vertex normals: the Gauss map, for meshes not star-shaped about any point.
         P = vertices[faces]
@@ -184,9 +181,7 @@ def alexa_relaxation(vertices, faces, max_iter=10000, tol=1e-10, step=0.5, start
 
 def _normalise_surface(X, faces):
     """Translate the area-weighted centroid to the origin and scale the total area to 4 pi."""
-    areas = triangle_areas_3d(X, faces)
-    centre = (areas[:, None] * X[faces].mean(axis=1)).sum(axis=0) / areas.sum()
-    return (X - centre) * np.sqrt(4 * np.pi / areas.sum())
+    return (X - area_weighted_centroid(X, faces)) * np.sqrt(4 * np.pi / triangle_areas(X, faces).sum())
 
 
 def cmcf_map(vertices, faces, steps=20, time_step=1.0):

@@ -4,6 +4,8 @@ from dataclasses import dataclass, asdict
 
 import numpy as np
 
+from .geometry import signed_solid_angles, spherical_angles  # noqa: F401  (the certificate's measures)
+
 NORM_TOLERANCE = 1e-9
 DEGREE_TOLERANCE = 1e-9
 
@@ -34,36 +36,6 @@ class Certificate:
 
     def to_dict(self):
         return asdict(self)
-
-
-def signed_solid_angles(positions, faces):
-    """Signed solid angle of each spherical triangle (Van Oosterom & Strackee), (t,).
-
-    Positive for triangles that are counter-clockwise seen from outside the sphere.
-    """
-    a, b, c = (positions[faces[:, k]] for k in range(3))
-    # det[a, b, c] = a . ((b - a) x (c - a)): differences keep tiny triangles accurate.
-    det = np.einsum("ij,ij->i", a, np.cross(b - a, c - a))
-    na, nb, nc = (np.linalg.norm(p, axis=1) for p in (a, b, c))
-    denom = (na * nb * nc + np.einsum("ij,ij->i", a, b) * nc + np.einsum("ij,ij->i", b, c) * na
-             + np.einsum("ij,ij->i", c, a) * nb)
-    return 2 * np.arctan2(det, denom)
-
-
-def spherical_angles(positions, faces):
-    """Spherical corner angles of each triangle measured from positions, (t, 3).
-
-    The angle at a is the angle between the tangents at a toward b and toward c; it is negative for
-    a flipped triangle. Tangents are built from differences b - a, c - a, never from dot products
-    close to 1, so the angles of tiny triangles keep their relative accuracy.
-    """
-    X = positions / np.linalg.norm(positions, axis=1, keepdims=True)
-    P = X[faces]
-    a, b, c = P, np.roll(P, -1, axis=1), np.roll(P, -2, axis=1)
-    db, dc = b - a, c - a
-    tb = db - np.einsum("tjk,tjk->tj", db, a)[..., None] * a
-    tc = dc - np.einsum("tjk,tjk->tj", dc, a)[..., None] * a
-    return np.arctan2(np.einsum("tjk,tjk->tj", a, np.cross(tb, tc)), np.einsum("tjk,tjk->tj", tb, tc))
 
 
 def certify(positions, faces):

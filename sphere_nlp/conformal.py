@@ -8,7 +8,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .targets import triangle_areas_3d
+from .geometry import scatter_to_vertices, triangle_areas
 
 
 # --- shared finite-element pieces -------------------------------------------------------------------
@@ -49,9 +49,7 @@ def _assemble_edge_weights(faces, corner_weight, n):
 
 def lumped_mass(vertices, faces):
     """Barycentric lumped mass matrix: a third of the area of each incident triangle, (n, n) diagonal."""
-    areas = triangle_areas_3d(vertices, faces)
-    mass = np.bincount(np.asarray(faces).ravel(), weights=np.repeat(areas / 3, 3), minlength=len(vertices))
-    return sp.diags(mass)
+    return sp.diags(scatter_to_vertices(faces, triangle_areas(vertices, faces) / 3, len(vertices)))
 
 
 def _dirichlet_solve(K, values, fixed):

@@ -334,7 +334,7 @@ def validate_mesh(vertices, faces, vertex_names=None):
     >>> repairs
     ['flipped 1 face(s) to make the orientation consistent']
     """
-    from .targets import corner_angles_3d
+    from .geometry import corner_angles
 
     vertices, faces = check_arrays(vertices, faces)
     repairs = []
@@ -344,7 +344,7 @@ def validate_mesh(vertices, faces, vertex_names=None):
         faces, flipped = orient_consistently(faces)
         repairs.append("flipped %d face(s) to make the orientation consistent" % flipped)
         connectivity = build_connectivity(faces, len(vertices), vertex_names)
-    min_angle = corner_angles_3d(vertices, faces).min(axis=1)
+    min_angle = corner_angles(vertices, faces).min(axis=1)
     degenerate = ~(min_angle > DEGENERATE_ANGLE)
     if degenerate.any():
         first = int(np.flatnonzero(degenerate)[0])

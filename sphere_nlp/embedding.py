@@ -29,9 +29,9 @@ def edge_weights(vertices, connectivity, kind="cotan"):
     """Positive symmetric edge weights: clamped cotangent weights, or uniform ones."""
     if kind == "uniform" or vertices is None:
         return np.ones(connectivity.n_edges)
-    from .targets import corner_angles_3d
+    from .geometry import corner_angles
 
-    cot = 1 / np.tan(np.clip(corner_angles_3d(vertices, connectivity.faces), 1e-6, np.pi - 1e-6))
+    cot = 1 / np.tan(np.clip(corner_angles(vertices, connectivity.faces), 1e-6, np.pi - 1e-6))
     c = connectivity.edge_corner_indices()
     w = 0.5 * (cot.ravel()[c[:, 0]] + cot.ravel()[c[:, 1]])
     # Clamp to keep Tutte's theorem (positive weights), relative to the typical weight.
@@ -147,8 +147,8 @@ def convex_embedding(connectivity, vertices=None, weights="cotan", outer_face=No
     w = edge_weights(vertices, connectivity, weights)
     if outer_face is None:
         if vertices is not None:
-            from .targets import triangle_areas_3d
-            outer_face = int(np.argmax(triangle_areas_3d(vertices, connectivity.faces)))
+            from .geometry import triangle_areas
+            outer_face = int(np.argmax(triangle_areas(vertices, connectivity.faces)))
         else:
             outer_face = 0
     planar = planar_tutte(connectivity, w, outer_face)

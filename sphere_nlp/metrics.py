@@ -14,7 +14,8 @@ unsigned, so it cannot see a flip; the ``flipped`` count of the summary does).
 
 import numpy as np
 
-from .certify import certify, signed_solid_angles, spherical_angles
+from .certify import certify
+from .geometry import corner_angles, signed_solid_angles, spherical_angles, triangle_areas  # noqa: F401
 
 SUMMARY_KEYS = ("valid", "flipped", "degree", "max_norm_error", "mean_abs_angle_diff_deg",
                 "max_abs_angle_diff_deg", "qc_mean", "qc_max", "mean_abs_log_area", "area_cv",
@@ -23,30 +24,6 @@ SUMMARY_KEYS = ("valid", "flipped", "degree", "max_norm_error", "mean_abs_angle_
 
 def _arrays(vertices, faces):
     return np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64)
-
-
-def corner_angles(vertices, faces):
-    """Planar corner angles of each triangle, (t, 3), ``[i, j]`` at vertex ``faces[i, j]``.
-
-    Works for any triangles in 3D, e.g. the input mesh or the chord triangles of sphere positions.
-    The angle is ``atan2(|cross|, dot)`` of the two edge vectors, accurate for needle-thin triangles
-    (``arccos`` of a normalised dot product loses all digits near 0 and pi). Angles are unsigned, in
-    [0, pi]; a degenerate triangle (coincident corners) gets 0 at the coincident corners.
-
-    Examples
-    --------
-    >>> from sphere_nlp.shapes import octahedron
-    >>> V, F = octahedron()
-    >>> bool(np.allclose(corner_angles(V, F), np.pi / 3))
-    True
-    """
-    vertices, faces = _arrays(vertices, faces)
-    P = vertices[faces]                                   # (t, 3 corners, 3 coords)
-    to_next = np.roll(P, -1, axis=1) - P
-    to_prev = np.roll(P, 1, axis=1) - P
-    cross = np.linalg.norm(np.cross(to_next, to_prev), axis=2)
-    dot = np.einsum("tjk,tjk->tj", to_next, to_prev)
-    return np.arctan2(cross, dot)
 
 
 def angle_distortion(mesh_vertices, sphere_vertices, faces):
@@ -128,8 +105,7 @@ def quasi_conformal_ratio(mesh_vertices, sphere_vertices, faces):
 def normalised_areas_3d(mesh_vertices, faces):
     """3D triangle areas scaled so that they sum to 4 pi (the area of the unit sphere), (t,)."""
     mesh_vertices, faces = _arrays(mesh_vertices, faces)
-    P = mesh_vertices[faces]
-    areas = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
+    areas = triangle_areas(mesh_vertices, faces)
     return areas * (4 * np.pi / areas.sum())
 
 

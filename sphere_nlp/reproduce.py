@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from . import geometry
 from .baselines import alexa_relaxation
 from .certify import signed_solid_angles, spherical_angles
 from .mesh_io import atomic_output, write_json, write_mesh
 from .shapes import cylinder
-from .targets import corner_angles_3d, triangle_areas_3d
 
 SEGMENTS, RINGS = 12, 6            # the cylinder of models/cylinder.off
 SIDE_TRIANGLES = 2 * SEGMENTS * RINGS
@@ -75,14 +75,14 @@ def panel_metrics(vertices, faces, positions=None):
     >>> m["mean_abs_angle_diff_deg"], m["black_triangle_angles_deg"]
     (0.0, [32.779533, 90.0, 57.220467])
     """
-    angles_3d = corner_angles_3d(vertices, faces)
-    areas_3d = triangle_areas_3d(vertices, faces)
+    angles_3d = geometry.corner_angles(vertices, faces)
+    areas_3d = geometry.triangle_areas(vertices, faces)
     target_areas = 4 * np.pi * areas_3d / areas_3d.sum()
     if positions is None:
         chord_angles = corner_angles = angles_3d
         areas = target_areas
     else:
-        chord_angles = corner_angles_3d(positions, faces)
+        chord_angles = geometry.corner_angles(positions, faces)
         corner_angles = spherical_angles(positions, faces)
         areas = signed_solid_angles(positions, faces)
     log_area = np.abs(np.log(areas / target_areas)) if (areas > 0).all() else None

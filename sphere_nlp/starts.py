@@ -26,7 +26,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .certify import certify, signed_solid_angles, spherical_angles
+from .certify import certify
+from .geometry import scatter_to_vertices, signed_solid_angles, spherical_angles, triangle_areas
 from .hierarchy import prolong_to_subdivision  # noqa: F401  (the hierarchy's start, re-exported)
 
 # The named starting points of :func:`initial_point` (an (n, 3) array of positions is the other kind).
@@ -59,10 +60,8 @@ def angles_and_excess(positions, faces):
 
 
 def vertex_areas(vertices, faces, n_vertices):
-    """A third of the 3D area of the triangles around each vertex (the Mobius centring's weights)."""
-    from .targets import triangle_areas_3d
-
-    return np.bincount(faces.ravel(), np.repeat(triangle_areas_3d(vertices, faces), 3), minlength=n_vertices)
+    """The 3D area of the triangles around each vertex (the Mobius centring's weights)."""
+    return scatter_to_vertices(faces, triangle_areas(vertices, faces), n_vertices)
 
 
 def conformal_start(connectivity, vertices, weights=None):

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .geometry import corner_angles, triangle_areas
+
 MODES = ("equal-angles", "equal-areas", "original-angles", "original-areas")
 
 DEFAULT_WEIGHTS = {
@@ -67,32 +69,6 @@ class Targets:
     def excess_scale(self):
         """The unit of the area term, the mean excess 4 pi / t."""
         return 4 * np.pi / len(self.excess)
-
-
-def corner_angles_3d(vertices, faces):
-    """Interior angles of each 3D triangle, (t, 3), ``[i, j]`` at vertex ``faces[i, j]``.
-
-    Uses atan2 of cross and dot products, which stays accurate for needle-thin triangles.
-
-    Examples
-    --------
-    >>> from sphere_nlp.shapes import octahedron
-    >>> V, F = octahedron()
-    >>> np.allclose(corner_angles_3d(V, F), np.pi / 3)
-    True
-    """
-    P = vertices[faces]                                   # (t, 3 corners, 3 coords)
-    to_next = np.roll(P, -1, axis=1) - P
-    to_prev = np.roll(P, 1, axis=1) - P
-    cross = np.linalg.norm(np.cross(to_next, to_prev), axis=2)
-    dot = np.einsum("tjk,tjk->tj", to_next, to_prev)
-    return np.arctan2(cross, dot)
-
-
-def triangle_areas_3d(vertices, faces):
-    """Area of each 3D triangle, (t,)."""
-    P = vertices[faces]
-    return 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
 
 
 def make_targets(mode, vertices, faces, vertex_degree, angle_weight=None, area_weight=None,
@@ -134,8 +110,8 @@ def make_targets(mode, vertices, faces, vertex_degree, angle_weight=None, area_w
         angles = np.broadcast_to(2 * np.pi / vertex_degree[faces], (t, 3)).astype(float)
         excess = np.full(t, 4 * np.pi / t)
     else:
-        angles = corner_angles_3d(vertices, faces)
-        areas = triangle_areas_3d(vertices, faces)
+        angles = corner_angles(vertices, faces)
+        areas = triangle_areas(vertices, faces)
         excess = 4 * np.pi * areas / areas.sum()
     default_angle_weight, default_area_weight = DEFAULT_WEIGHTS[mode]
     custom = False

@@ -7,7 +7,7 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from sphere_nlp.shapes import cylinder, icosphere, octahedron, tetrahedron
-from sphere_nlp.targets import corner_angles_3d
+from sphere_nlp.geometry import corner_angles as corner_angles_3d
 
 
 def ellipsoid(subdivisions=2, axes=(1.0, 1.6, 0.7)):

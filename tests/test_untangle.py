@@ -110,7 +110,7 @@ def test_knight_conformal_map_is_untangled():
     from sphere_nlp.embedding import mobius_centre
     from sphere_nlp.mesh_io import load_mesh
     from sphere_nlp.repair import prepare_mesh
-    from sphere_nlp.targets import triangle_areas_3d
+    from sphere_nlp.geometry import triangle_areas as triangle_areas_3d
 
     mesh = prepare_mesh(*load_mesh(shared_mesh("knight.off")))
     V, F = mesh.normalised_vertices, mesh.faces
