@@ -74,6 +74,10 @@ def build_connectivity(faces, n_vertices, vertex_names=None):
     Every vertex index ``0 .. n_vertices - 1`` must be used. Faces that are oriented inconsistently
     with their neighbours are not accepted here; see :func:`orient_consistently`.
 
+    One function of about 75 lines on purpose: each check (indices, edges, orientation, vertex fans,
+    components, genus) is a few lines that build the table the next one needs, in the order the
+    errors are reported, so that the first defect found is the one named.
+
     Parameters
     ----------
     faces : (t, 3) int array

@@ -6,7 +6,7 @@ This is the only module that imports CasADi. Two formulations of the same proble
     The paper as written: unknowns alpha (3t) and e (t); equality constraints (6) triangle
     sums, (7) vertex sums, (8) edge consistency through the spherical cosine rule; inequalities
     (3) alpha > 0, (4) e > 0, (5) e < 2 alpha. It is the reference the fast path is tested against.
-``substituted`` (default)
+``substituted``
     (6) is solved exactly for e = alpha0 + alpha1 + alpha2 - pi and substituted everywhere, leaving
     3t unknowns, constraints (7) and (8), and the inequalities (3)-(5) as linear constraints in alpha.
     Same feasible set, same objective, same optimum; fewer unknowns and constraints.
@@ -29,10 +29,13 @@ arrays in numpy (``_vectorize``, ``_LogChordValues``), which cut the function ev
 86k-triangle solve from 7.6 s to 2.1 s; ``evaluation="casadi"`` maps them over the triangles in a
 CasADi graph instead, the reference. Tests check both against CasADi's automatic differentiation.
 The area modes hand IPOPT a modified Hessian (``hessian="clipped"``: the exact one less the negative
-part of the term the log unknowns add, which vanishes at the optima; see :class:`AngleNLP`).
+part of the term the log unknowns add, which vanishes at the optima; see :class:`LogChordNLP`).
 
-The faithful and substituted forms keep (8) in the paper's quotient form, so the Lagrangian Hessian stays block-diagonal per
-triangle (multiplying it out couples the two triangles of every edge and is much slower).
+The paper's two forms are :class:`PaperNLP`, the log-chord form :class:`LogChordNLP`; both share
+:class:`_AngleProblem`'s evaluation, bounds and IPOPT runs, and :func:`AngleNLP` builds either from
+a formulation's name. The faithful and substituted forms keep (8) in the paper's quotient form, so
+the Lagrangian Hessian stays block-diagonal per triangle (multiplying it out couples the two
+triangles of every edge and is much slower).
 """
 
 import time
@@ -483,48 +486,179 @@ class _NumpyFunction(ca.Callback):
         return 0
 
 
-class AngleNLP:
-    """The symbolic NLP for one mesh and one set of targets.
+class _AngleProblem:
+    """What the two kinds of angle NLP share: evaluation, bounds, IPOPT's set-up and its runs.
+
+    A subclass builds ``_x`` (CasADi symbol), ``n_variables``, ``n_equalities``, ``n_inequalities``,
+    ``_symbolic_problem()`` (and ``_numeric`` for numpy evaluation), and says its bounds on the
+    variables (``_variable_lower_bounds``) and how they pack (``pack``, ``unpack``).
+    """
+
+    def _start(self, connectivity, formulation, n_variables):
+        """The attributes every form sets first."""
+        self.formulation = formulation
+        self.connectivity = connectivity
+        self.n_faces = connectivity.n_faces
+        self.n_variables = n_variables
+        self._numeric = None                 # _LogChordValues when IPOPT is to use numpy evaluation
+        self._symbolic = None                # (objective, g_eq, g_ineq, derivatives) as CasADi graphs
+        self._functions = None
+        self._callbacks = None
+        self._solvers = {}
+
+    def evaluate(self, x):
+        """Objective and equality-constraint residuals at x (numpy)."""
+        if self._numeric is not None:
+            f, g = self._numeric.objective_and_constraints(np.asarray(x, float).ravel())
+            return float(f), g.copy()                # the evaluator keeps g for its next callers
+        if self._functions is None:
+            objective, g_eq = self._symbolic_problem()[:2]
+            self._functions = ca.Function("sphere_nlp_eval", [self._x], [objective, g_eq])
+        f, g = self._functions(x)
+        return float(f), np.asarray(g).ravel()
+
+    def _numpy_problem(self):
+        """nlpsol's problem and derivative Functions, evaluated by ``self._numeric`` (numpy); built once.
+
+        CasADi keeps no reference to a Python Callback, so the NLP object holds them for all its
+        solvers.
+        """
+        if self._callbacks is not None:
+            return self._callbacks
+        values = self._numeric
+        n_x, n_g = self.n_variables, self.n_equalities
+        x_in = ("x", ca.Sparsity.dense(n_x))
+        p_in = ("p", ca.Sparsity(0, 1))
+        scalar, g_out = ca.Sparsity.scalar(), ("g", ca.Sparsity.dense(n_g))
+        functions = [
+            _NumpyFunction("sphere_nlp_fg", [x_in], [("f", scalar), g_out],
+                           values.objective_and_constraints),
+            _NumpyFunction("nlp_grad_f", [x_in, p_in], [("f", scalar), ("grad_f_x", ca.Sparsity.dense(n_x))],
+                           lambda x, p: values.gradient(x)),
+            _NumpyFunction("nlp_jac_g", [x_in, p_in], [g_out, ("jac_g_x", values.jacobian_sparsity)],
+                           lambda x, p: values.jacobian(x)),
+            _NumpyFunction("nlp_hess_l", [x_in, p_in, ("lam_f", scalar), ("lam_g", ca.Sparsity.dense(n_g))],
+                           [("triu_hess_gamma_x_x", values.hessian_sparsity)],
+                           lambda x, p, lam_f, lam_g: [values.hessian(x, lam_f[0], lam_g)]),
+        ]
+        f, g = functions[0](self._x)
+        self._callbacks = (f, g, dict(zip(("grad_f", "jac_g", "hess_lag"), functions[1:])), functions)
+        return self._callbacks
+
+    def _bounds(self, inequalities, excess_bounds=None, log_u_lower=None):
+        lbx = self._variable_lower_bounds(inequalities, log_u_lower)
+        ubx = np.full(self.n_variables, np.inf)
+        if excess_bounds is not None:
+            lbx[3 * self.n_faces:], ubx[3 * self.n_faces:] = excess_bounds
+        lbg = np.zeros(self.n_equalities + (self.n_inequalities if inequalities else 0))
+        ubg = np.zeros_like(lbg)
+        if inequalities:
+            ubg[self.n_equalities:] = np.inf
+        return lbx, ubx, lbg, ubg
+
+    def _solver(self, inequalities, options):
+        key = (inequalities, tuple(sorted(options.items())))
+        if key not in self._solvers:
+            opts = {"print_time": False, "show_eval_warnings": False, "ipopt": dict(options)}
+            if self._numeric is not None:
+                f, g, derivatives, _ = self._numpy_problem()
+                # f, g and the multipliers come from IPOPT's last iterate: CasADi would otherwise
+                # differentiate f and g once more after the solve (and there are no parameters)
+                opts.update(derivatives, no_nlp_grad=True, calc_lam_p=False, calc_lam_x=False,
+                            calc_f=False, calc_g=False)
+            else:
+                f, g_eq, g_ineq, derivatives = self._symbolic_problem()
+                g = ca.vertcat(g_eq, g_ineq) if inequalities else g_eq
+                if not inequalities or self.n_inequalities == 0:
+                    opts.update(derivatives)       # exact derivatives built in linear time
+            _, _, lbg, ubg = self._bounds(inequalities)
+            callback = _ProgressCallback(self.n_variables, g.numel(), lbg, ubg)
+            opts["iteration_callback"] = callback
+            solver = ca.nlpsol("sphere_nlp", "ipopt", {"x": self._x, "f": f, "g": g}, opts)
+            self._solvers[key] = (solver, callback)
+        return self._solvers[key]
+
+    def solve(self, x0, inequalities=False, lam_g0=None, lam_x0=None, options=None, progress=None,
+              excess_bounds=None, log_u_lower=None, abort_violation=None, abort_iterations=50,
+              on_iterate=None, modify_hessian=None):
+        """Run IPOPT from x0.
+
+        Parameters
+        ----------
+        x0 : (n_variables,) array
+        inequalities : bool
+            Add (3)-(5); otherwise only the equality constraints.
+        lam_g0, lam_x0 : arrays, optional
+            Multipliers to warm-start from (lam_g0 may cover the equalities only).
+        options : dict
+            IPOPT options (without the "ipopt." prefix).
+        progress : callable(iteration, objective, violation, elapsed), optional
+        excess_bounds : (lower, upper) arrays of length t, optional
+            log-chord only: bounds on the log excesses (a trust region; see
+            :func:`sphere_nlp.solve.solve_angles`).
+        log_u_lower : (3t,) array, optional
+            log-chord with ``inequalities=True`` only: lower bounds on log u per corner, instead of
+            ``log(angle_margin)`` everywhere.
+        abort_violation : float, optional
+            Stop the run (status "Diverged") once the max constraint violation has stayed above
+            this for ``abort_iterations`` iterations in a row: a run that has left the solution set
+            that far rarely comes back and would otherwise spend its whole time limit.
+        abort_iterations : int
+        on_iterate : callable(iteration, x, lam_g, lam_x, objective), optional
+            Called with every iterate (copies), for traces and checkpoints.
+        modify_hessian : callable(evaluator, x, lam_f, lam_g, values) -> values, optional
+            log-chord with numpy evaluation only, for experiments: replaces the nonzeros ``values``
+            of the Lagrangian Hessian's upper triangle handed to IPOPT at every evaluation.
+            ``evaluator`` has ``hessian_sparsity`` and ``jacobian_sparsity`` (CasADi) and
+            ``jacobian(x)`` -> (g, nonzeros); :func:`entry_positions` locates entries.
+
+        Returns
+        -------
+        IpoptRun
+        """
+        start = time.perf_counter()
+        solver, callback = self._solver(inequalities, options or {})
+        build_s = time.perf_counter() - start
+        callback.reset(progress, abort_violation, abort_iterations, on_iterate)
+        if modify_hessian is not None and self._numeric is None:
+            raise ValueError("modify_hessian needs the log-chord form with numpy evaluation")
+        lbx, ubx, lbg, ubg = self._bounds(inequalities, excess_bounds, log_u_lower)
+        args = dict(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+        if lam_g0 is not None:
+            lam = np.zeros(len(lbg))
+            lam[:len(lam_g0)] = lam_g0
+            args["lam_g0"] = lam
+        if lam_x0 is not None:
+            args["lam_x0"] = lam_x0
+        start = time.perf_counter()
+        if self._numeric is not None:
+            self._numeric.modify_hessian = modify_hessian
+        try:
+            out = solver(**args)
+        finally:
+            if self._numeric is not None:
+                self._numeric.modify_hessian = None
+        stats = solver.stats()
+        status = stats.get("return_status", "unknown")
+        if callback.aborted:
+            status = "Diverged"
+        return IpoptRun(x0=np.array(x0, dtype=float).ravel(), x=np.asarray(out["x"]).ravel(),
+                        lam_g=np.asarray(out["lam_g"]).ravel(), lam_x=np.asarray(out["lam_x"]).ravel(),
+                        objective=float(out["f"]), status=status, iterations=int(stats.get("iter_count", 0)),
+                        time_s=time.perf_counter() - start, build_s=build_s, stats=stats)
+
+
+class PaperNLP(_AngleProblem):
+    """The paper's NLP as written (``faithful``) or with (6) substituted (``substituted``), one
+    flat CasADi graph (see the module docstring).
 
     Parameters
     ----------
     connectivity : Connectivity
     targets : Targets
-    formulation : {"log-chord", "substituted", "faithful"}
+    formulation : {"substituted", "faithful"}
     dropped_vertices : sequence of int
-        Vertices whose angle-sum constraint (7) is left out. At a solution the equality Jacobian has
-        exactly three redundant rows (its left null space is spanned by the vertex coordinates
-        x, y, z), which makes the KKT matrix singular; leaving out (7) at three vertices whose
-        positions are linearly independent removes the redundancy, and those three sums then hold
-        automatically. :func:`sphere_nlp.solve.solve_angles` checks all of (7) afterwards.
-    angle_margin : float
-        log-chord only: with ``inequalities=True`` every u = alpha - e/2 is kept >= this (radians).
-    dropped_penalty : float
-        log-chord only: weight of the penalty on the left-out vertex sums.
-    area_form : {"linear", "log"}
-        log-chord only: the area term of the objective. ``"linear"`` is (9),
-        ``area_weight * sum(((e - e') / e_mean)^2)``; ``"log"`` is
-        ``area_weight * sum((log e - log e')^2)``, convex in the unknown log e, which the area modes
-        solve first (:func:`sphere_nlp.solve.area_continuation`) before (9) itself.
-    obtuse_corners : (t, 3) bool array, optional
-        log-chord only: corners whose sin alpha and sin u in (8) are written through the other two
-        corners (sin alpha_j = sin(u_k + u_l), sin u_j = sin(u_k + u_l + e/2), equal under (6)),
-        which stays well-conditioned near alpha = pi; :func:`sphere_nlp.solve.solve_angles` flags
-        the corners above pi/2 where a stage starts. Same feasible set and optima either way.
-    hessian : {"exact", "clipped"}
-        log-chord only: the Hessian handed to IPOPT. ``"exact"`` (default) is the Lagrangian's.
-        ``"clipped"`` leaves out the negative part of the term that the logarithmic unknowns add:
-        with x = exp(z) (x = u or e), the Hessian in z is D H_x D + diag(dL/dz), D = diag(x), and
-        ``"clipped"`` adds only max(dL/dz, 0) on the diagonal. dL/dz vanishes at a KKT point
-        wherever no bound is active (and equals the bound's multiplier, >= 0, where a lower bound
-        is), so the optima and IPOPT's fast local convergence are unchanged; away from them that
-        term made the Hessian indefinite on every iteration of the area modes' long middle, and
-        IPOPT's inertia correction added 1e-2..1e-1 times the identity instead, a step more like
-        gradient descent (see :class:`sphere_nlp.settings.SolverSettings`' ``area_mode_hessian``).
-    evaluation : {"numpy", "casadi"}
-        log-chord only: how IPOPT's function and derivative values are computed: by numpy over all
-        triangles at once (default, faster), or by CasADi's interpreter one triangle at a time
-        (the reference). The same numbers up to rounding.
+        Vertices whose angle-sum constraint (7) is left out (see :class:`LogChordNLP`).
 
     Notes
     -----
@@ -533,60 +667,25 @@ class AngleNLP:
     because CasADi derives the sparse Hessian then.
     """
 
-    def __init__(self, connectivity, targets, formulation=DEFAULT_FORMULATION, dropped_vertices=(),
-                 angle_margin=DEFAULT_SETTINGS.angle_margin,
-                 dropped_penalty=DEFAULT_SETTINGS.dropped_penalty, area_form="linear",
-                 obtuse_corners=None, evaluation="numpy", hessian="exact"):
-        if formulation not in FORMULATIONS:
-            raise ValueError("unknown formulation %r; choose one of %s" % (formulation, FORMULATIONS))
-        if evaluation not in EVALUATIONS:
-            raise ValueError("evaluation must be one of %s, not %r" % (EVALUATIONS, evaluation))
-        if area_form not in ("linear", "log"):
-            raise ValueError("area_form must be 'linear' or 'log', not %r" % (area_form,))
-        if hessian not in HESSIANS:
-            raise ValueError("hessian must be one of %s, not %r" % (HESSIANS, hessian))
-        self.formulation = formulation
-        self.angle_margin = float(angle_margin)
-        self.connectivity = connectivity
+    def __init__(self, connectivity, targets, formulation="substituted", dropped_vertices=()):
+        if formulation not in ("substituted", "faithful"):
+            raise ValueError("PaperNLP's formulation is 'substituted' or 'faithful', not %r" % (formulation,))
         t = connectivity.n_faces
-        self.n_faces = t
-        n_x = 3 * t + (0 if formulation == "substituted" else t)
-        self._numeric = None                 # _LogChordValues when IPOPT is to use numpy evaluation
-        self._symbolic = None                # (objective, g_eq, g_ineq, derivatives) as CasADi graphs
-        self._functions = None
-        self._callbacks = None
+        self._start(connectivity, formulation, 3 * t + (0 if formulation == "substituted" else t))
         kept_vertices = np.setdiff1d(np.arange(connectivity.n_vertices), dropped_vertices)
-        if formulation == "log-chord":
-            if obtuse_corners is None:
-                obtuse_corners = np.zeros((t, 3), dtype=bool)
-            obtuse_corners = np.asarray(obtuse_corners, dtype=bool)
-            if obtuse_corners.shape != (t, 3):
-                raise ValueError("obtuse_corners must be a (t, 3) boolean array")
-            self._parts = self._log_chord_parts(connectivity, targets, kept_vertices, dropped_penalty,
-                                                area_form, obtuse_corners=obtuse_corners, hessian=hessian)
-            self._x = ca.MX.sym("x", n_x)
-            self.n_equalities = self._parts["A"].shape[0]
-            self.n_inequalities = 0          # (3)-(5) hold by construction (see the module docstring)
-            if evaluation == "numpy":
-                self._numeric = _LogChordValues(self._parts)
-        else:
-            x, objective, g_eq, g_ineq = self._build_paper_form(connectivity, targets, formulation,
-                                                               kept_vertices)
-            self._x, self._symbolic = x, (objective, g_eq, g_ineq, {})
-            self.n_equalities, self.n_inequalities = g_eq.numel(), g_ineq.numel()
-        self.n_variables = n_x
-        self._solvers = {}
+        x, objective, g_eq, g_ineq = self._build_paper_form(connectivity, targets, formulation, kept_vertices)
+        self._x, self._symbolic = x, (objective, g_eq, g_ineq, {})
+        self.n_equalities, self.n_inequalities = g_eq.numel(), g_ineq.numel()
 
     def _symbolic_problem(self):
-        """(objective, g_eq, g_ineq, derivatives): the problem as CasADi graphs of ``self._x``.
-
-        Built on first use for the log-chord form (the numpy evaluation does not need it; it took
-        half of the NLP's build time at 100k triangles).
-        """
-        if self._symbolic is None:
-            objective, g_eq, derivatives = self._log_chord_graph(self._x, self._parts)
-            self._symbolic = (objective, g_eq, ca.MX(0, 1), derivatives)
+        """(objective, g_eq, g_ineq, derivatives): the problem as CasADi graphs of ``self._x``."""
         return self._symbolic
+
+    def _variable_lower_bounds(self, inequalities, log_u_lower=None):
+        lbx = np.full(self.n_variables, -np.inf)
+        if inequalities:
+            lbx[:] = 0.0          # (3) alpha > 0 and, for the faithful form, (4) e > 0
+        return lbx
 
     @staticmethod
     def _build_paper_form(connectivity, targets, formulation, kept_vertices):
@@ -630,6 +729,118 @@ class AngleNLP:
 
         return x, objective, g_eq, g_ineq
 
+    def pack(self, angles, excess=None):
+        """Variables vector from angles (t, 3) (and excess (t,) for the faithful form)."""
+        angles = np.asarray(angles, float).ravel()
+        if self.formulation == "faithful":
+            if excess is None:
+                excess = angles.reshape(-1, 3).sum(1) - np.pi
+            return np.concatenate([angles, np.asarray(excess, float)])
+        return angles
+
+    def unpack(self, x):
+        """(angles (t, 3), excess (t,)) from a variables vector."""
+        x = np.asarray(x, float).ravel()
+        angles = x[:3 * self.n_faces].reshape(-1, 3)
+        if self.formulation == "faithful":
+            return angles, x[3 * self.n_faces:].copy()
+        return angles, angles.sum(1) - np.pi
+
+
+class LogChordNLP(_AngleProblem):
+    """The log-chord NLP (the default formulation; see the module docstring): unknowns log u and log e,
+    evaluated by numpy over all triangles at once with exact structured derivatives.
+
+    Parameters
+    ----------
+    connectivity : Connectivity
+    targets : Targets
+    dropped_vertices : sequence of int
+        Vertices whose angle-sum constraint (7) is left out. At a solution the equality Jacobian has
+        exactly three redundant rows (its left null space is spanned by the vertex coordinates
+        x, y, z), which makes the KKT matrix singular; leaving out (7) at three vertices whose
+        positions are linearly independent removes the redundancy, and those three sums then hold
+        automatically. :func:`sphere_nlp.solve.solve_angles` checks all of (7) afterwards.
+    angle_margin : float
+        With ``inequalities=True`` every u = alpha - e/2 is kept >= this (radians).
+    dropped_penalty : float
+        Weight of the penalty on the left-out vertex sums.
+    area_form : {"linear", "log"}
+        The area term of the objective. ``"linear"`` is (9),
+        ``area_weight * sum(((e - e') / e_mean)^2)``; ``"log"`` is
+        ``area_weight * sum((log e - log e')^2)``, convex in the unknown log e, which the area modes
+        solve first (:func:`sphere_nlp.solve.area_continuation`) before (9) itself.
+    obtuse_corners : (t, 3) bool array, optional
+        Corners whose sin alpha and sin u in (8) are written through the other two
+        corners (sin alpha_j = sin(u_k + u_l), sin u_j = sin(u_k + u_l + e/2), equal under (6)),
+        which stays well-conditioned near alpha = pi; :func:`sphere_nlp.solve.solve_angles` flags
+        the corners above pi/2 where a stage starts. Same feasible set and optima either way.
+    hessian : {"exact", "clipped"}
+        The Hessian handed to IPOPT. ``"exact"`` (default) is the Lagrangian's.
+        ``"clipped"`` leaves out the negative part of the term that the logarithmic unknowns add:
+        with x = exp(z) (x = u or e), the Hessian in z is D H_x D + diag(dL/dz), D = diag(x), and
+        ``"clipped"`` adds only max(dL/dz, 0) on the diagonal. dL/dz vanishes at a KKT point
+        wherever no bound is active (and equals the bound's multiplier, >= 0, where a lower bound
+        is), so the optima and IPOPT's fast local convergence are unchanged; away from them that
+        term made the Hessian indefinite on every iteration of the area modes' long middle, and
+        IPOPT's inertia correction added 1e-2..1e-1 times the identity instead, a step more like
+        gradient descent (see :class:`sphere_nlp.settings.SolverSettings`' ``area_mode_hessian``).
+    evaluation : {"numpy", "casadi"}
+        How IPOPT's function and derivative values are computed: by numpy over all
+        triangles at once (default, faster), or by CasADi's interpreter one triangle at a time
+        (the reference). The same numbers up to rounding.
+
+    Notes
+    -----
+    Variables are packed as ``x = [log u.ravel(), log e]``, u = alpha - e/2; use :meth:`pack` and
+    :meth:`unpack`. Solver objects are created on first use.
+    """
+
+    def __init__(self, connectivity, targets, dropped_vertices=(), angle_margin=DEFAULT_SETTINGS.angle_margin,
+                 dropped_penalty=DEFAULT_SETTINGS.dropped_penalty, area_form="linear", obtuse_corners=None,
+                 evaluation="numpy", hessian="exact"):
+        if evaluation not in EVALUATIONS:
+            raise ValueError("evaluation must be one of %s, not %r" % (EVALUATIONS, evaluation))
+        if area_form not in ("linear", "log"):
+            raise ValueError("area_form must be 'linear' or 'log', not %r" % (area_form,))
+        if hessian not in HESSIANS:
+            raise ValueError("hessian must be one of %s, not %r" % (HESSIANS, hessian))
+        t = connectivity.n_faces
+        self._start(connectivity, "log-chord", 4 * t)
+        self.angle_margin = float(angle_margin)
+        if obtuse_corners is None:
+            obtuse_corners = np.zeros((t, 3), dtype=bool)
+        obtuse_corners = np.asarray(obtuse_corners, dtype=bool)
+        if obtuse_corners.shape != (t, 3):
+            raise ValueError("obtuse_corners must be a (t, 3) boolean array")
+        kept_vertices = np.setdiff1d(np.arange(connectivity.n_vertices), dropped_vertices)
+        self._parts = self._log_chord_parts(connectivity, targets, kept_vertices, dropped_penalty,
+                                            area_form, obtuse_corners=obtuse_corners, hessian=hessian)
+        self._x = ca.MX.sym("x", self.n_variables)
+        self.n_equalities = self._parts["A"].shape[0]
+        self.n_inequalities = 0          # (3)-(5) hold by construction (see the module docstring)
+        if evaluation == "numpy":
+            self._numeric = _LogChordValues(self._parts)
+
+    def _variable_lower_bounds(self, inequalities, log_u_lower=None):
+        lbx = np.full(self.n_variables, -np.inf)
+        if inequalities:
+            # u > 0 holds anyway; the bound keeps every u = alpha - e/2 at least a margin from 0,
+            # because on some meshes the infimum of the objective is at a degenerate triangle.
+            lbx[:3 * self.n_faces] = np.log(self.angle_margin) if log_u_lower is None else log_u_lower
+        return lbx
+
+    def _symbolic_problem(self):
+        """(objective, g_eq, g_ineq, derivatives): the problem as CasADi graphs of ``self._x``.
+
+        Built on first use for the log-chord form (the numpy evaluation does not need it; it took
+        half of the NLP's build time at 100k triangles).
+        """
+        if self._symbolic is None:
+            objective, g_eq, derivatives = self._log_chord_graph(self._x, self._parts)
+            self._symbolic = (objective, g_eq, ca.MX(0, 1), derivatives)
+        return self._symbolic
+
     @staticmethod
     def _log_chord_parts(connectivity, targets, kept_vertices, dropped_penalty=0.0, area_form="linear", *,
                          obtuse_corners, hessian="exact"):
@@ -647,6 +858,8 @@ class AngleNLP:
         where c picks the objective rows (plus the dropped-vertex penalty's terms). The 4-variable
         derivatives are derived once (SX); :class:`_LogChordValues` evaluates them over all
         triangles in numpy, :meth:`_log_chord_graph` maps them over the triangles in CasADi.
+        About 70 lines on purpose: the per-triangle functions and the index arrays of A, P and D
+        share one row layout (8 rows of h per triangle), kept in one place.
 
         Returns
         -------
@@ -790,180 +1003,40 @@ class AngleNLP:
                                ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
         return objective, g_eq, {"grad_f": grad_f, "jac_g": jac_g, "hess_lag": hess_lag}
 
-    # -- packing ---------------------------------------------------------------------------------
     def pack(self, angles, excess=None):
-        """Variables vector from angles (t, 3) (and excess (t,) for the faithful form)."""
-        if self.formulation == "log-chord":
-            angles = np.asarray(angles, float)
-            if excess is None:
-                excess = angles.sum(1) - np.pi
-            u = angles - np.asarray(excess)[:, None] / 2
-            # A start outside the valid region is moved just inside it (the logarithm needs u, e > 0).
-            u = np.where(u > 0, u, 1e-3).ravel()
-            excess = np.where(excess > 0, excess, 1e-3 * 4 * np.pi / len(excess))
-            return np.log(np.concatenate([u, excess]))
-        angles = np.asarray(angles, float).ravel()
-        if self.formulation == "faithful":
-            if excess is None:
-                excess = angles.reshape(-1, 3).sum(1) - np.pi
-            return np.concatenate([angles, np.asarray(excess, float)])
-        return angles
+        """Variables (log u, log e) from angles (t, 3) and excess (t,) (default: from (6))."""
+        angles = np.asarray(angles, float)
+        if excess is None:
+            excess = angles.sum(1) - np.pi
+        u = angles - np.asarray(excess)[:, None] / 2
+        # A start outside the valid region is moved just inside it (the logarithm needs u, e > 0).
+        u = np.where(u > 0, u, 1e-3).ravel()
+        excess = np.where(excess > 0, excess, 1e-3 * 4 * np.pi / len(excess))
+        return np.log(np.concatenate([u, excess]))
 
     def unpack(self, x):
         """(angles (t, 3), excess (t,)) from a variables vector."""
         x = np.asarray(x, float).ravel()
         angles = x[:3 * self.n_faces].reshape(-1, 3)
-        if self.formulation == "log-chord":
-            excess = np.exp(x[3 * self.n_faces:])
-            return np.exp(angles) + excess[:, None] / 2, excess
-        if self.formulation == "faithful":
-            return angles, x[3 * self.n_faces:].copy()
-        return angles, angles.sum(1) - np.pi
+        excess = np.exp(x[3 * self.n_faces:])
+        return np.exp(angles) + excess[:, None] / 2, excess
 
-    def evaluate(self, x):
-        """Objective and equality-constraint residuals at x (numpy)."""
-        if self._numeric is not None:
-            f, g = self._numeric.objective_and_constraints(np.asarray(x, float).ravel())
-            return float(f), g.copy()                # the evaluator keeps g for its next callers
-        if self._functions is None:
-            objective, g_eq = self._symbolic_problem()[:2]
-            self._functions = ca.Function("sphere_nlp_eval", [self._x], [objective, g_eq])
-        f, g = self._functions(x)
-        return float(f), np.asarray(g).ravel()
 
-    def _numpy_problem(self):
-        """nlpsol's problem and derivative Functions, evaluated by ``self._numeric`` (numpy); built once.
+def AngleNLP(connectivity, targets, formulation=DEFAULT_FORMULATION, dropped_vertices=(), **log_chord_options):
+    """The angle NLP of one mesh and one set of targets in the given formulation.
 
-        CasADi keeps no reference to a Python Callback, so the NLP object holds them for all its
-        solvers.
-        """
-        if self._callbacks is not None:
-            return self._callbacks
-        values = self._numeric
-        n_x, n_g = self.n_variables, self.n_equalities
-        x_in = ("x", ca.Sparsity.dense(n_x))
-        p_in = ("p", ca.Sparsity(0, 1))
-        scalar, g_out = ca.Sparsity.scalar(), ("g", ca.Sparsity.dense(n_g))
-        functions = [
-            _NumpyFunction("sphere_nlp_fg", [x_in], [("f", scalar), g_out],
-                           values.objective_and_constraints),
-            _NumpyFunction("nlp_grad_f", [x_in, p_in], [("f", scalar), ("grad_f_x", ca.Sparsity.dense(n_x))],
-                           lambda x, p: values.gradient(x)),
-            _NumpyFunction("nlp_jac_g", [x_in, p_in], [g_out, ("jac_g_x", values.jacobian_sparsity)],
-                           lambda x, p: values.jacobian(x)),
-            _NumpyFunction("nlp_hess_l", [x_in, p_in, ("lam_f", scalar), ("lam_g", ca.Sparsity.dense(n_g))],
-                           [("triu_hess_gamma_x_x", values.hessian_sparsity)],
-                           lambda x, p, lam_f, lam_g: [values.hessian(x, lam_f[0], lam_g)]),
-        ]
-        f, g = functions[0](self._x)
-        self._callbacks = (f, g, dict(zip(("grad_f", "jac_g", "hess_lag"), functions[1:])), functions)
-        return self._callbacks
+    ``"log-chord"``: a :class:`LogChordNLP` (``log_chord_options`` are its keywords: angle_margin,
+    dropped_penalty, area_form, obtuse_corners, evaluation, hessian); ``"substituted"`` and
+    ``"faithful"``: a :class:`PaperNLP`. Both have ``pack``, ``unpack``, ``evaluate`` and ``solve``
+    (IPOPT from a point, returning an :class:`IpoptRun`).
 
-    # -- solving ---------------------------------------------------------------------------------
-    def _bounds(self, inequalities, excess_bounds=None, log_u_lower=None):
-        lbx = np.full(self.n_variables, -np.inf)
-        if inequalities and self.formulation == "log-chord":
-            # u > 0 holds anyway; the bound keeps every u = alpha - e/2 at least a margin from 0,
-            # because on some meshes the infimum of the objective is at a degenerate triangle.
-            lbx[:3 * self.n_faces] = np.log(self.angle_margin) if log_u_lower is None else log_u_lower
-        elif inequalities:
-            lbx[:] = 0.0          # (3) alpha > 0 and, for the faithful form, (4) e > 0
-        ubx = np.full(self.n_variables, np.inf)
-        if excess_bounds is not None:
-            lbx[3 * self.n_faces:], ubx[3 * self.n_faces:] = excess_bounds
-        lbg = np.zeros(self.n_equalities + (self.n_inequalities if inequalities else 0))
-        ubg = np.zeros_like(lbg)
-        if inequalities:
-            ubg[self.n_equalities:] = np.inf
-        return lbx, ubx, lbg, ubg
-
-    def _solver(self, inequalities, options):
-        key = (inequalities, tuple(sorted(options.items())))
-        if key not in self._solvers:
-            opts = {"print_time": False, "show_eval_warnings": False, "ipopt": dict(options)}
-            if self._numeric is not None:
-                f, g, derivatives, _ = self._numpy_problem()
-                # f, g and the multipliers come from IPOPT's last iterate: CasADi would otherwise
-                # differentiate f and g once more after the solve (and there are no parameters)
-                opts.update(derivatives, no_nlp_grad=True, calc_lam_p=False, calc_lam_x=False,
-                            calc_f=False, calc_g=False)
-            else:
-                f, g_eq, g_ineq, derivatives = self._symbolic_problem()
-                g = ca.vertcat(g_eq, g_ineq) if inequalities else g_eq
-                if not inequalities or self.n_inequalities == 0:
-                    opts.update(derivatives)       # exact derivatives built in linear time
-            _, _, lbg, ubg = self._bounds(inequalities)
-            callback = _ProgressCallback(self.n_variables, g.numel(), lbg, ubg)
-            opts["iteration_callback"] = callback
-            solver = ca.nlpsol("sphere_nlp", "ipopt", {"x": self._x, "f": f, "g": g}, opts)
-            self._solvers[key] = (solver, callback)
-        return self._solvers[key]
-
-    def solve(self, x0, inequalities=False, lam_g0=None, lam_x0=None, options=None, progress=None,
-              excess_bounds=None, log_u_lower=None, abort_violation=None, abort_iterations=50,
-              on_iterate=None, modify_hessian=None):
-        """Run IPOPT from x0.
-
-        Parameters
-        ----------
-        x0 : (n_variables,) array
-        inequalities : bool
-            Add (3)-(5); otherwise only the equality constraints.
-        lam_g0, lam_x0 : arrays, optional
-            Multipliers to warm-start from (lam_g0 may cover the equalities only).
-        options : dict
-            IPOPT options (without the "ipopt." prefix).
-        progress : callable(iteration, objective, violation, elapsed), optional
-        excess_bounds : (lower, upper) arrays of length t, optional
-            log-chord only: bounds on the log excesses (a trust region; see
-            :func:`sphere_nlp.solve.solve_angles`).
-        log_u_lower : (3t,) array, optional
-            log-chord with ``inequalities=True`` only: lower bounds on log u per corner, instead of
-            ``log(angle_margin)`` everywhere.
-        abort_violation : float, optional
-            Stop the run (status "Diverged") once the max constraint violation has stayed above
-            this for ``abort_iterations`` iterations in a row: a run that has left the solution set
-            that far rarely comes back and would otherwise spend its whole time limit.
-        abort_iterations : int
-        on_iterate : callable(iteration, x, lam_g, lam_x, objective), optional
-            Called with every iterate (copies), for traces and checkpoints.
-        modify_hessian : callable(evaluator, x, lam_f, lam_g, values) -> values, optional
-            log-chord with numpy evaluation only, for experiments: replaces the nonzeros ``values``
-            of the Lagrangian Hessian's upper triangle handed to IPOPT at every evaluation.
-            ``evaluator`` has ``hessian_sparsity`` and ``jacobian_sparsity`` (CasADi) and
-            ``jacobian(x)`` -> (g, nonzeros); :func:`entry_positions` locates entries.
-
-        Returns
-        -------
-        IpoptRun
-        """
-        start = time.perf_counter()
-        solver, callback = self._solver(inequalities, options or {})
-        build_s = time.perf_counter() - start
-        callback.reset(progress, abort_violation, abort_iterations, on_iterate)
-        if modify_hessian is not None and self._numeric is None:
-            raise ValueError("modify_hessian needs the log-chord form with numpy evaluation")
-        lbx, ubx, lbg, ubg = self._bounds(inequalities, excess_bounds, log_u_lower)
-        args = dict(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
-        if lam_g0 is not None:
-            lam = np.zeros(len(lbg))
-            lam[:len(lam_g0)] = lam_g0
-            args["lam_g0"] = lam
-        if lam_x0 is not None:
-            args["lam_x0"] = lam_x0
-        start = time.perf_counter()
-        if self._numeric is not None:
-            self._numeric.modify_hessian = modify_hessian
-        try:
-            out = solver(**args)
-        finally:
-            if self._numeric is not None:
-                self._numeric.modify_hessian = None
-        stats = solver.stats()
-        status = stats.get("return_status", "unknown")
-        if callback.aborted:
-            status = "Diverged"
-        return IpoptRun(x0=np.array(x0, dtype=float).ravel(), x=np.asarray(out["x"]).ravel(),
-                        lam_g=np.asarray(out["lam_g"]).ravel(), lam_x=np.asarray(out["lam_x"]).ravel(),
-                        objective=float(out["f"]), status=status, iterations=int(stats.get("iter_count", 0)),
-                        time_s=time.perf_counter() - start, build_s=build_s, stats=stats)
+    ``dropped_vertices`` are the vertices whose angle-sum constraint (7) is left out (see
+    :class:`LogChordNLP`).
+    """
+    if formulation not in FORMULATIONS:
+        raise ValueError("unknown formulation %r; choose one of %s" % (formulation, FORMULATIONS))
+    if formulation == "log-chord":
+        return LogChordNLP(connectivity, targets, dropped_vertices, **log_chord_options)
+    if log_chord_options:
+        raise TypeError("%s are options of the log-chord formulation only" % ", ".join(sorted(log_chord_options)))
+    return PaperNLP(connectivity, targets, formulation, dropped_vertices)

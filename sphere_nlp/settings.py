@@ -109,7 +109,7 @@ class SolverSettings:
         more than this in log u (else it starts from its own start; see
         :func:`sphere_nlp.solve.margin_restart`).
     dropped_penalty : float
-        Weight of the penalty on the three left-out vertex sums (see :class:`sphere_nlp.nlp.AngleNLP`).
+        Weight of the penalty on the three left-out vertex sums (see :class:`sphere_nlp.nlp.LogChordNLP`).
     max_dropped_penalty : float
         If those sums have not come back, the penalty is raised 100-fold at a time up to this.
     feasibility_tolerance : float
@@ -138,19 +138,19 @@ class SolverSettings:
     area_continuation_options : mapping
         Added to the steps' IPOPT options when the floor is on (a small initial barrier).
     area_mode_hessian : {"exact", "clipped"}
-        The Hessian the area modes hand IPOPT (:class:`sphere_nlp.nlp.AngleNLP`'s ``hessian``);
+        The Hessian the area modes hand IPOPT (:class:`sphere_nlp.nlp.LogChordNLP`'s ``hessian``);
         the angle modes use the exact one.
     projection_iterations : int
         Iteration cap of the projection of a stage stopped by the caller's limits (``max_iter``
         does not apply to it; ``max_time`` does).
     obtuse_angle : float
-        Corners above this angle where a stage starts use the obtuse form of (8) (AngleNLP).
+        Corners above this angle where a stage starts use the obtuse form of (8) (LogChordNLP).
     start_gauge : {"excess", "area"}
         Mobius normalisation of the angle modes' start (:func:`sphere_nlp.starts.starting_positions`);
         the area modes keep "area" (their continuation sets the scale).
     on_run : callable(stage, nlp, run), optional
         Called after every IPOPT run with the run's name (e.g. "margin", "margin-recentred",
-        "area-continuation-1/2"), its :class:`sphere_nlp.nlp.AngleNLP` and its
+        "area-continuation-1/2"), its NLP (:func:`sphere_nlp.nlp.AngleNLP`) and its
         :class:`sphere_nlp.nlp.IpoptRun` (start, end point, multipliers, status): for traces and
         benchmarks to observe the solve. It may return an IpoptRun to use instead (for
         experiments and tests, e.g. to inject a failure); None keeps the run. Not a tuning
@@ -159,7 +159,7 @@ class SolverSettings:
         Called with every IPOPT iterate of every run (copies), for traces and checkpoints.
     modify_hessian : callable(stage, evaluator, x, lam_f, lam_g, values) -> values, optional
         For experiments only: replaces the Lagrangian Hessian handed to IPOPT at every evaluation
-        of every run (see :meth:`sphere_nlp.nlp.AngleNLP.solve`'s ``modify_hessian``); the
+        of every run (see :meth:`sphere_nlp.nlp.LogChordNLP.solve`'s ``modify_hessian``); the
         result is then no longer the solver's.
     """
 

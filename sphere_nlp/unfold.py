@@ -223,6 +223,10 @@ def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True
     That keeps the walk stable (lengths from data do not compound) where the data is good, and
     local where it is not.
 
+    One loop of about 85 lines on purpose: the level's placements, their averaging and the repairs
+    between levels all read and update the same placed set and front, which split into functions
+    would be passed around whole.
+
     Parameters
     ----------
     connectivity : Connectivity

@@ -1,6 +1,6 @@
 """Repair a spherical map that has a few flipped triangles by local Tutte re-embedding.
 
-The FLASH conformal map (:func:`sphere_nlp.baselines.conformal_map`) is an excellent start for the
+The FLASH conformal map (:func:`sphere_nlp.conformal.conformal_map`) is an excellent start for the
 solver, but its cotangent weights can be negative, so on some meshes a handful of triangles come out
 flipped. :func:`untangle` re-embeds only the neighbourhood of those triangles and leaves every other
 vertex exactly where it was:

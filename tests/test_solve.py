@@ -9,7 +9,7 @@ import pytest
 
 import sphere_nlp
 from sphere_nlp.connectivity import build_connectivity
-from sphere_nlp.nlp import AngleNLP, IpoptRun
+from sphere_nlp.nlp import AngleNLP, IpoptRun, LogChordNLP
 from sphere_nlp.settings import SolverSettings
 from sphere_nlp import starts
 from sphere_nlp.targets import MODES, make_targets
@@ -160,14 +160,14 @@ def test_area_continuation_halves_a_step_that_ends_far_and_retries_from_the_last
     c, targets, angles, excess, dropped = _stretched_ellipsoid_start()
     runs = []
 
-    class RecordingNLP(AngleNLP):
+    class RecordingNLP(LogChordNLP):
         def solve(self, x0, **kw):
             run = super().solve(x0, **kw)
             runs.append((np.array(x0), run.x))
             return run
 
     def nlp_for(tg, x):
-        return RecordingNLP(c, tg, "log-chord", dropped_vertices=dropped, area_form="log")
+        return RecordingNLP(c, tg, dropped_vertices=dropped, area_form="log")
 
     x0 = nlp_for(targets, None).pack(angles, excess)
     settings = SolverSettings(area_continuation_iterations=3,
