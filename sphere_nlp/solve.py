@@ -5,7 +5,7 @@
 convex embedding),
 whose angles satisfy every constraint; the inequalities (3)-(5) hold by construction in that
 formulation, and the three redundant vertex constraints are left out (see
-:class:`sphere_nlp.nlp.AngleNLP`). Stages:
+:class:`sphere_nlp.nlp.LogChordNLP`). Stages:
 
 1. Area modes only (area weight > 0): :func:`area_continuation` walks the excesses from the start's
    to the targets with a log-area objective, so that the next stage starts near its optimum.
@@ -44,8 +44,9 @@ from fractions import Fraction
 
 import numpy as np
 
-from .nlp import DEFAULT_FORMULATION, AngleNLP
-from .settings import DEFAULT_SETTINGS
+from .nlp import DEFAULT_FORMULATION, AngleNLP, LogChordNLP
+from .errors import UsageError
+from .settings import DEFAULT_SETTINGS, SolverSettings
 from .starts import initial_point
 
 # What a margin stage stopped by the caller's limits yields (solve_angles's on_limit).
@@ -193,6 +194,8 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     AngleSolution
     """
     settings = DEFAULT_SETTINGS if settings is None else settings
+    if not isinstance(settings, SolverSettings):
+        raise UsageError("settings must be a sphere_nlp.SolverSettings, not %s" % type(settings).__name__)
     if on_limit not in ON_LIMIT:
         raise ValueError("on_limit must be one of %s, not %r" % (ON_LIMIT, on_limit))
     if start is None:
@@ -265,10 +268,10 @@ class _Context:
     def nlp(self, obtuse_corners, targets=None, dropped_vertices=None, **keywords):
         """The log-chord NLP with this solve's left-out vertices, Hessian, margin and penalty."""
         keywords.setdefault("dropped_penalty", self.settings.dropped_penalty)
-        return AngleNLP(self.connectivity, self.targets if targets is None else targets, self.formulation,
-                        dropped_vertices=self.dropped if dropped_vertices is None else dropped_vertices,
-                        obtuse_corners=obtuse_corners, hessian=self.hessian,
-                        angle_margin=self.settings.angle_margin, **keywords)
+        return LogChordNLP(self.connectivity, self.targets if targets is None else targets,
+                           dropped_vertices=self.dropped if dropped_vertices is None else dropped_vertices,
+                           obtuse_corners=obtuse_corners, hessian=self.hessian,
+                           angle_margin=self.settings.angle_margin, **keywords)
 
     def obtuse_at(self, nlp, x):
         """The corners to write in the obtuse form of (8) for a stage starting at x (AngleNLP)."""
@@ -342,7 +345,7 @@ def _solve_log_chord(context, on_limit):
 
 
 def windowed_solve(context, nlp, x_start, name, inequalities=False, recentre=True, log_u_lower=None,
-                   warm_from=None, first_options=None):
+                   warm_from=None, first_options=None, log_e_lower=None):
     """IPOPT runs of one stage inside a window on the log excesses, re-centred while they end on it.
 
     Bounds log e within ``context.window`` of the current point act as a trust region: when most
@@ -364,6 +367,8 @@ def windowed_solve(context, nlp, x_start, name, inequalities=False, recentre=Tru
         Keep log u >= ``log_u_lower`` (AngleNLP.solve).
     log_u_lower : (3t,) array, optional
         Lower bounds on log u per corner (default: the margin everywhere).
+    log_e_lower : (t,) array, optional
+        Lower bounds on log e per triangle, kept inside every window (default: the window's own).
     warm_from : IpoptRun, optional
         An earlier run with the same equality constraints whose multipliers start this one.
     first_options : dict, optional
@@ -384,9 +389,10 @@ def windowed_solve(context, nlp, x_start, name, inequalities=False, recentre=Tru
             lam_x = previous.lam_x.copy()
             lam_x[3 * t:] = 0.0               # the old window's bounds are gone
             warm = dict(lam_g0=previous.lam_g, lam_x0=lam_x)
+        lower = log_e - window if log_e_lower is None else np.maximum(log_e - window, log_e_lower)
         run = run_ipopt(nlp, name if round_ == 0 else "%s-recentred" % name, x, settings, context.stages,
                         inequalities=inequalities, options=run_options, progress=context.stage_progress(name),
-                        excess_bounds=(log_e - window, log_e + window), log_u_lower=log_u_lower,
+                        excess_bounds=(lower, log_e + window), log_u_lower=log_u_lower,
                         abort_violation=settings.abort_violation, abort_iterations=settings.abort_iterations,
                         **warm)
         moved = np.max(np.abs(run.x[3 * t:] - log_e), initial=0.0)

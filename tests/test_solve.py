@@ -302,3 +302,31 @@ def test_diverged_flags_non_finite_or_far_infeasible_points_only():
     x_off[0] += 1.0                     # one corner e times larger: a vertex sum off by far more than 0.1
     assert solve.diverged(c, nlp, x_off)
     assert solve.diverged(c, nlp, np.full_like(x, np.nan))
+
+
+def test_on_run_sees_every_run_and_the_settings_cannot_change_under_it():
+    # The public per-run hook: one call per IPOPT run, in order, with the records the result keeps;
+    # the settings object is frozen, its IPOPT options read-only.
+    from sphere_nlp.nlp import status_kind
+
+    seen = []
+    settings = SolverSettings(on_run=lambda stage, nlp, run: seen.append((stage, run)))
+    V, F = ellipsoid(1, axes=(1.0, 2.0, 0.7))
+    r = sphere_nlp.parameterize((V, F), target="original-areas", settings=settings)
+    assert [stage for stage, _ in seen] == [s["name"] for s in r.stages]
+    assert [run.iterations for _, run in seen] == [s["iterations"] for s in r.stages]
+    assert all(run.x0.shape == run.x.shape for _, run in seen)
+    assert seen[-1][1].success and status_kind(r.status) == "solved" and r.certificate.valid
+    assert [status_kind(s) for s in ("Maximum_WallTime_Exceeded", "Diverged", "Restoration_Failed")] == [
+        "limit", "diverged", "failed"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        settings.excess_window = 1.0
+    with pytest.raises(TypeError):
+        settings.ipopt_options["tol"] = 1.0
+
+
+def test_settings_of_another_type_are_refused_before_solving():
+    from sphere_nlp.errors import UsageError
+
+    with pytest.raises(UsageError, match="settings must be a sphere_nlp.SolverSettings, not dict"):
+        sphere_nlp.parameterize(ellipsoid(1), settings={"excess_window": 2.0})
