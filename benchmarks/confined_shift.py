@@ -78,6 +78,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
 
     state = {"log": []}
+    diagonal_positions = {}              # per Hessian evaluator (one per NLP), the diagonal's entries
 
     def is_margin(stage):
         # The margin stage and its re-centred runs (and a penalty stage after it); not the walk's
@@ -88,10 +89,10 @@ def main(argv=None):
         if not is_margin(stage) or args.baseline:
             return values
         start = time.perf_counter()
-        if not hasattr(evaluator, "_diagonal_positions"):
+        if id(evaluator) not in diagonal_positions:
             pattern = csc_from_casadi(evaluator.hessian_sparsity, np.ones(len(values)))
             diagonal = np.arange(pattern.shape[0])
-            evaluator._diagonal_positions = entry_positions(pattern, diagonal, diagonal)
+            diagonal_positions[id(evaluator)] = entry_positions(pattern, diagonal, diagonal)
         _, jacobian_values = evaluator.jacobian(x)
         jacobian = csc_from_casadi(evaluator.jacobian_sparsity, jacobian_values)
         hessian_upper = csc_from_casadi(evaluator.hessian_sparsity, values)
@@ -103,7 +104,7 @@ def main(argv=None):
             support = order[:np.searchsorted(np.cumsum(squares[order]), SUPPORT_MASS) + 1]
             shift[support] = np.maximum(shift[support], args.factor * -value / SUPPORT_MASS)
         values = values.copy()
-        values[evaluator._diagonal_positions] += shift
+        values[diagonal_positions[id(evaluator)]] += shift
         state["log"].append((len(found), int(np.count_nonzero(shift)), time.perf_counter() - start))
         return values
 

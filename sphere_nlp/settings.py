@@ -71,7 +71,7 @@ AREA_CONTINUATION_OPTIONS = MappingProxyType({"mu_init": 1e-4})
 
 
 def _frozen(mapping):
-    return field(default_factory=lambda: MappingProxyType(dict(mapping)))
+    return field(default_factory=lambda: mapping)
 
 
 @dataclass(frozen=True)
@@ -79,8 +79,8 @@ class SolverSettings:
     """Tuning constants of the staged log-chord solve (see :mod:`sphere_nlp.solve`).
 
     Frozen: make a variant with ``SolverSettings(name=value, ...)`` or :meth:`replace`. The
-    IPOPT option mappings are read-only; pass a plain dict to replace one. docs/tuning.md gives
-    the measurements behind each default.
+    IPOPT option mappings are read-only copies of what is given (e.g. a dict). docs/tuning.md
+    gives the measurements behind each default.
 
     Attributes
     ----------
@@ -193,6 +193,12 @@ class SolverSettings:
     on_run: object = None
     on_iterate: object = None
     modify_hessian: object = None
+
+    def __post_init__(self):
+        # A plain dict given for an option mapping is copied read-only, so the object stays frozen.
+        for name in ("ipopt_options", "area_mode_ipopt_options", "angle_mode_margin_options",
+                     "warm_start_options", "area_continuation_options"):
+            object.__setattr__(self, name, MappingProxyType(dict(getattr(self, name))))
 
     def replace(self, **changes):
         """A copy with ``changes`` applied (:func:`dataclasses.replace`)."""

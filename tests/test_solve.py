@@ -323,6 +323,9 @@ def test_on_run_sees_every_run_and_the_settings_cannot_change_under_it():
         settings.excess_window = 1.0
     with pytest.raises(TypeError):
         settings.ipopt_options["tol"] = 1.0
+    given = {"tol": 1e-6}
+    with pytest.raises(TypeError):
+        SolverSettings(ipopt_options=given).ipopt_options["tol"] = 1.0      # a read-only copy
 
 
 def test_settings_of_another_type_are_refused_before_solving():
