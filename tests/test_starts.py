@@ -1,4 +1,4 @@
-"""Starting points (sphere_nlp.starts): the linear guess and the Mobius gauge of the valid start."""
+"""Starting points (sphere_nlp.starts): the linear guess, the valid starts and their Mobius gauge, given positions."""
 
 import numpy as np
 import pytest
@@ -44,3 +44,25 @@ def test_excess_gauge_is_stationary_for_sum_of_squared_excesses_and_stays_valid(
     assert certify(moved, F).valid
     assert f_after < f_before and np.linalg.norm(g_before) > 0.04
     assert np.linalg.norm(g_after) < 0.2 * np.linalg.norm(g_before)   # first order only on coarse meshes
+
+
+def test_initial_points_are_valid_triangulations_and_given_positions_are_checked():
+    # Every named valid start certifies and its angles satisfy (6) and (7) to rounding; positions
+    # the caller gives are used as they are if they certify, refused with a UsageError if not.
+    from sphere_nlp.errors import UsageError
+
+    V, F = ellipsoid(2, axes=(1.0, 2.0, 0.7))
+    c = build_connectivity(F, len(V))
+    targets = make_targets("original-angles", V, F, c.vertex_degree)
+    for start, kind in (("auto", "conformal"), ("embedding", "embedding")):
+        point = starts.initial_point(c, targets, start, V)
+        assert point.kind.startswith(kind) and certify(point.positions, F).valid
+        residuals = constraint_residuals(c, point.angles, point.excess)
+        assert np.abs(residuals["triangle"]).max() < 1e-12 and np.abs(residuals["vertex"]).max() < 1e-12
+    given = starts.initial_point(c, targets, point.positions, V)
+    assert given.kind == "given" and np.array_equal(given.positions, point.positions)
+    with pytest.raises(UsageError, match="not a valid spherical map"):
+        starts.initial_point(c, targets, point.positions * [-1, 1, 1], V)      # mirrored: every face flipped
+    linear = starts.initial_point(c, targets, "linear")
+    assert linear.kind == "linear" and linear.positions is None
+    np.testing.assert_allclose(constraint_residuals(c, linear.angles, linear.excess)["vertex"], 0, atol=1e-10)
