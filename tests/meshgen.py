@@ -7,7 +7,7 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from sphere_nlp.shapes import cylinder, icosphere, octahedron, tetrahedron
-from sphere_nlp.geometry import corner_angles as corner_angles_3d
+from sphere_nlp.geometry import corner_angles
 
 
 def ellipsoid(subdivisions=2, axes=(1.0, 1.6, 0.7)):
@@ -133,7 +133,7 @@ def random_genus0_mesh(n_points, seed, n_flips=None, jitter=0.3, min_angle=0.02)
 
     moved = P * rng.uniform(1 - jitter, 1 + jitter, size=(len(P), 1))
     moved += rng.uniform(-jitter / 4, jitter / 4, size=moved.shape)
-    if corner_angles_3d(moved, F).min() > min_angle:
+    if corner_angles(moved, F).min() > min_angle:
         P = moved                                 # otherwise keep the convex hull's positions
 
     n_flips = 2 * n_points if n_flips is None else n_flips
@@ -161,7 +161,7 @@ def _try_random_flip(P, F, rng, min_angle):
     if (has_c & has_d).any():
         return False
     new = np.array([[a, d, c], [d, b, c]])                          # keeps the orientation
-    if corner_angles_3d(P, new).min() <= min_angle:
+    if corner_angles(P, new).min() <= min_angle:
         return False
     F[i], F[k] = new
     return True

@@ -106,16 +106,15 @@ def test_mean_value_weights_reproduce_a_planar_mesh():
 
 def test_knight_conformal_map_is_untangled():
     # The start the solver would like to use: FLASH, Mobius-centred by vertex area (57 flips).
-    from sphere_nlp.baselines import conformal_map
+    from sphere_nlp.conformal import conformal_map
     from sphere_nlp.embedding import mobius_centre
     from sphere_nlp.mesh_io import load_mesh
     from sphere_nlp.repair import prepare_mesh
-    from sphere_nlp.geometry import triangle_areas as triangle_areas_3d
+    from sphere_nlp.starts import vertex_areas
 
     mesh = prepare_mesh(*load_mesh(shared_mesh("knight.off")))
     V, F = mesh.normalised_vertices, mesh.faces
-    vertex_areas = np.bincount(F.ravel(), np.repeat(triangle_areas_3d(V, F), 3), minlength=len(V))
-    X = mobius_centre(conformal_map(V, F), vertex_areas)
+    X = mobius_centre(conformal_map(V, F), vertex_areas(V, F, len(V)))
     assert (signed_solid_angles(X, F) <= 0).sum() > 10
     Y, info = untangle(X, F, mesh_vertices=V)
     assert info.valid and certify(Y, F).valid
