@@ -247,7 +247,7 @@ def compare(paths, out_dir, methods=METHODS, max_time=None, progress=None):
 def main(argv=None):
     """``python -m sphere_nlp compare MESH... --out DIR [--methods ...] [--max-time S]``."""
     parser = argparse.ArgumentParser(
-        prog="sphere_nlp compare",
+        prog="sphere-nlp compare",
         description="Map meshes with sphere_nlp's four target modes and with baseline methods; write "
                     "validity and distortion of every map to DIR/compare.json and DIR/compare.md.")
     parser.add_argument("meshes", nargs="+", metavar="MESH", help="input meshes")
@@ -272,14 +272,14 @@ def main(argv=None):
         say("%d mesh(es) x %d method(s) -> %s" % (len(args.meshes), len(methods), args.out))
         rows = compare(args.meshes, args.out, methods=methods, max_time=args.max_time, progress=say)
     except errors.SphereNLPError as exc:
-        print("sphere_nlp compare: error: %s" % exc, file=sys.stderr)
+        print("sphere-nlp compare: error: %s" % exc, file=sys.stderr)
         return exc.exit_status
     except OSError as exc:
-        print("sphere_nlp compare: error: cannot write to %s: %s" % (args.out, exc.strerror or exc),
+        print("sphere-nlp compare: error: cannot write to %s: %s" % (args.out, exc.strerror or exc),
               file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("sphere_nlp compare: interrupted; the rows done so far are in %s" % args.out, file=sys.stderr)
+        print("sphere-nlp compare: interrupted; the rows done so far are in %s" % args.out, file=sys.stderr)
         return 130
     say("wrote %s and %s (%d rows, %d valid)" % (Path(args.out) / "compare.json", Path(args.out) / "compare.md",
                                                  len(rows), sum(bool(r["valid"]) for r in rows)))

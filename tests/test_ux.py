@@ -358,11 +358,11 @@ def test_terminal_progress_line_is_erased_before_an_input_error():
 def test_log_progress_is_plain_periodic_lines():
     stream = io.StringIO()
     progress = Progress(stream=stream)
-    progress.say("sphere_nlp: mapping x.off")
+    progress.say("sphere-nlp: mapping x.off")
     for i in range(100):                                      # a fast solve: no line per iteration
         progress.iteration("equality", i, 1.0, 0.0, 0.0)
     progress.stage("unfold")
-    assert stream.getvalue() == "sphere_nlp: mapping x.off\n"
+    assert stream.getvalue() == "sphere-nlp: mapping x.off\n"
     progress.last -= 10                                       # ... ten seconds later
     progress.stage("certify")
     assert stream.getvalue().splitlines()[-1].startswith("certify, ")
@@ -487,3 +487,68 @@ def test_readme_python_runs_and_its_numbers_are_current(tmp_path, monkeypatch):
     assert "# %.2f: mean angle distortion" % distortion["mean_abs_angle_diff_deg"] in readme
     assert ("mean angle distortion %.2f°, mean |log area ratio| %.3f"
             % (distortion["mean_abs_angle_diff_deg"], distortion["mean_abs_log_area"])) in readme
+
+
+# --- results in the ecosystem: trimesh, textured OBJ, version, one program name ----------------------
+
+def test_to_trimesh_keeps_the_map_and_textured_splits_only_at_seams(cylinder_result):
+    import trimesh
+    from trimesh.visual import TextureVisuals
+
+    plain = cylinder_result.to_trimesh()
+    assert isinstance(plain, trimesh.Trimesh)
+    assert np.array_equal(plain.vertices, cylinder_result.vertices)
+    assert np.array_equal(plain.faces, cylinder_result.faces)
+    textured = cylinder_result.to_trimesh(textured=True, geometry="input")
+    assert isinstance(textured.visual, TextureVisuals) and textured.visual.material.image.size == (1024, 512)
+    # Same triangles, in the input's positions; each corner's vertex uv is that corner's uv.
+    assert np.allclose(textured.vertices[textured.faces], cylinder_result.input_vertices[cylinder_result.faces])
+    assert np.allclose(textured.visual.uv[textured.faces], cylinder_result.texture_coordinates())
+    n = len(cylinder_result.vertices)
+    assert n < len(textured.vertices) < n + len(cylinder_result.faces)        # split at the seam only
+    with pytest.raises(sphere_nlp.errors.UsageError):
+        cylinder_result.to_trimesh(geometry="plane")
+
+
+def test_texture_option_writes_png_and_mtl_that_the_obj_references(tmp_path):
+    import trimesh
+    from PIL import Image
+
+    (tmp_path / "out").mkdir()
+    status = main([str(MODELS / "cylinder.off"), "-o", str(tmp_path / "out" / "c.obj"), "--texture",
+                   "checker.png", "--textured-input", str(tmp_path / "painted.obj"), "-q"])
+    assert status == 0
+    for obj, folder in ((tmp_path / "out" / "c.obj", tmp_path / "out"), (tmp_path / "painted.obj", tmp_path)):
+        lines = obj.read_text().splitlines()
+        assert "mtllib %s" % obj.with_suffix(".mtl").name in lines and any(l.startswith("usemtl ") for l in lines)
+        assert "map_Kd checker.png" in obj.with_suffix(".mtl").read_text().splitlines()
+        image = np.asarray(Image.open(folder / "checker.png"))
+        assert image.shape == (512, 1024, 3)
+        # A viewer's texture lookup at a corner's uv gives the checker value of that uv.
+        loaded = trimesh.load(obj, process=False)
+        assert loaded.visual.material.image.size == (1024, 512)
+        _, uvs, faces = read_textured_obj(obj)
+        corner_uv = uvs[faces[:, :, 1]]
+        centres = corner_uv.mean(axis=1)
+        col = np.floor((centres[:, 0] % 1) * 1024).astype(int)
+        row = np.floor((1 - centres[:, 1]) * 512).astype(int).clip(0, 511)
+        light = image[row, col, 0] > 128
+        assert np.array_equal(light, checker(centres) == 0)
+
+
+def test_texture_without_an_obj_output_is_a_usage_error_before_solving(tmp_path, capsys):
+    status = main([str(MODELS / "cylinder.off"), "-o", str(tmp_path / "s.off"), "--texture", "c.png"])
+    assert status == 2 and not list(tmp_path.iterdir())
+    assert capsys.readouterr().err.startswith("sphere-nlp: error: --texture needs an OBJ output")
+
+
+def test_version_and_one_program_name_in_every_message(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "sphere_nlp", "--version"], capture_output=True, text=True,
+                       env=checkout_env())
+    assert p.returncode == 0 and p.stdout.strip() == "sphere-nlp " + sphere_nlp.__version__
+    usage = subprocess.run([sys.executable, "-m", "sphere_nlp"], capture_output=True, text=True,
+                           env=checkout_env())
+    tool = subprocess.run([sys.executable, "-m", "sphere_nlp", str(tmp_path / "missing.off")],
+                          capture_output=True, text=True, env=checkout_env())
+    for p in (usage, tool):
+        assert p.returncode == 2 and p.stderr.strip().splitlines()[-1].startswith("sphere-nlp: error: ")
