@@ -256,24 +256,28 @@ class SphericalParameterization:
         """
         return distortion_summary(_unit_size(self.input_vertices), self.vertices, self.faces)
 
-    def write_png(self, path, measure="area"):
+    def write_png(self, path, measure=None, view=None):
         """Write a PNG: the input mesh and the sphere coloured by distortion, and a checkerboarded mesh.
 
-        ``measure`` is "area" (log area ratio) or "angle" (angle distortion, degrees); see
+        ``measure`` is "area" (log area ratio) or "angle" (angle distortion, degrees); by default the
+        one the mode does not optimise (angle distortion for the area modes, log area ratio for the
+        angle modes), which is where its map pays. ``view`` = (azimuth, elevation) in degrees, by
+        default the side of the mesh with the most projected area. See
         :func:`sphere_nlp.picture.render_png`. Written atomically; refuses uncertified results like
         :meth:`write`.
         """
         self._refuse_unless_certified()
         if Path(path).suffix.lower() != ".png":
             raise errors.UsageError("cannot write %s: a picture must be .png" % path)
-        from .picture import render_png           # matplotlib loads only when a picture is wanted
+        from .picture import default_measure, render_png   # matplotlib loads only when a picture is wanted
 
         summary = self.distortion()
         title = ("%s: %d vertices, mean angle distortion %.1f°, mean |log area ratio| %.3f"
                  % (self.target, len(self.vertices), summary["mean_abs_angle_diff_deg"],
                     summary["mean_abs_log_area"]))
-        render_png(path, _unit_size(self.input_vertices), self.vertices, self.faces, measure=measure,
-                   title=title)
+        return render_png(path, _unit_size(self.input_vertices), self.vertices, self.faces,
+                          measure=measure or default_measure(self.target), title=title, view=view,
+                          corner_uv=self.texture_coordinates())
 
     def save_solution(self, path):
         """Write vertices, faces, angles, excess, the targets and the vertex map to an .npz archive."""

@@ -39,8 +39,12 @@ def build_parser():
                                             "texture coordinates (default: <input stem>.sphere.off here)")
     out.add_argument("--png", metavar="OUT.png",
                      help="picture: mesh and sphere coloured by distortion, mesh checkerboarded")
-    out.add_argument("--png-measure", choices=("area", "angle"), default="area",
-                     help="colouring of the picture: log area ratio (default) or angle distortion")
+    out.add_argument("--png-measure", choices=("area", "angle"),
+                     help="colouring of the picture: log area ratio or angle distortion (default: the "
+                          "one the target mode does not optimise)")
+    out.add_argument("--view", metavar="AZ,EL", type=_view,
+                     help="camera azimuth and elevation of the picture, degrees (default: the side "
+                          "with the most projected area)")
     out.add_argument("--textured-input", metavar="OUT.obj",
                      help="the input mesh with the sphere's texture coordinates, to paint or texture")
     out.add_argument("--texture", metavar="NAME.png",
@@ -168,6 +172,15 @@ def summary_line(output, result):
     return line
 
 
+def _view(text):
+    """``AZ,EL`` in degrees, for --view."""
+    try:
+        azimuth, elevation = (float(word) for word in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError("expected AZIMUTH,ELEVATION in degrees, e.g. -60,20; got %r" % text)
+    return azimuth, elevation
+
+
 def _check_suffix(path, suffix, what):
     if path and Path(path).suffix.lower() != suffix:
         raise errors.UsageError("cannot write %s: %s must end in %s" % (path, what, suffix))
@@ -225,7 +238,7 @@ def run(args, progress):
         result.save_solution(args.save_solution)
     if args.png:
         progress.stage("write (picture)")
-        result.write_png(args.png, measure=args.png_measure)
+        result.write_png(args.png, measure=args.png_measure, view=args.view)
     progress.say(summary_line(output, result))
     return 0
 

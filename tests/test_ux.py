@@ -204,16 +204,69 @@ def test_png_is_a_real_picture(cylinder_result, tmp_path, measure):
 
 
 def test_png_colour_limits_follow_the_distortion(cylinder_result, tmp_path):
-    from sphere_nlp.metrics import area_log_ratio
-    from sphere_nlp.picture import render_png
+    from sphere_nlp.metrics import area_log_ratio, normalised_areas_3d
+    from sphere_nlp.picture import render_png, weighted_percentile
 
     V, F = cylinder()
     info = render_png(tmp_path / "a.png", V, cylinder_result.vertices, F)
-    log_area = area_log_ratio(V, cylinder_result.vertices, F)
+    log_area, weight = area_log_ratio(V, cylinder_result.vertices, F), normalised_areas_3d(V, F)
     low, high = info["colour_limits"]
-    assert low == -high and np.percentile(np.abs(log_area), 90) <= high <= np.abs(log_area).max()
-    assert info["drawn_triangles"][1] < len(F)               # the back of the sphere is culled
-    assert info["checker_levels"] == 3                        # small meshes get a fine checkerboard
+    assert low < 0 < high
+    assert (low, high) == (weighted_percentile(log_area, weight, 2), weighted_percentile(log_area, weight, 98))
+    beyond = (log_area < low) | (log_area > high)
+    assert info["clipped_share"] == pytest.approx(weight[beyond].sum() / weight.sum()) and info["clipped_share"] < 0.05
+    assert info["drawn"][1] < len(F)                          # the back of the sphere is culled
+    assert info["checker_pieces"] > len(F)                    # triangles cut at the checker lines
+
+
+def test_checker_pieces_are_exact_cuts_at_the_checker_lines():
+    from sphere_nlp.picture import checker_pieces
+    from sphere_nlp.texture import checker
+
+    # Positions equal to (u, v, 0), so each piece can be checked against the checker cells directly.
+    rng = np.random.default_rng(4)
+    corner_uv = rng.uniform(0, 1, size=(40, 3, 2))
+    positions = np.c_[corner_uv.reshape(-1, 2), np.zeros(120)]
+    faces = np.arange(120).reshape(-1, 3)
+    polygons, value, parent = checker_pieces(positions, faces, corner_uv)
+
+    def area(polygon):
+        x, y = polygon[:, 0], polygon[:, 1]
+        return 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+    cells = np.array([16, 8])
+    for polygon, v in zip(polygons, value):
+        centre = polygon[:, :2].mean(axis=0)
+        cell = np.floor(centre * cells)
+        # Every corner of a piece is inside (or on the border of) its centre's checker square.
+        assert (polygon[:, :2] * cells >= cell - 1e-9).all() and (polygon[:, :2] * cells <= cell + 1 + 1e-9).all()
+        assert v == checker(centre)
+    # The pieces tile each triangle exactly.
+    pieces_area = np.bincount(parent, [area(p) for p in polygons], minlength=40)
+    assert np.allclose(pieces_area, [area(positions[f]) for f in faces])
+
+
+@pytest.mark.parametrize("target, measure", [("original-angles", "area"), ("original-areas", "angle")])
+def test_picture_shows_what_the_mode_trades_away_by_default(cylinder_result, tmp_path, target, measure):
+    from sphere_nlp.picture import best_view
+
+    result = dataclasses.replace(cylinder_result, target=target)
+    info = result.write_png(tmp_path / "p.png")
+    assert (info["colour_limits"][0] < 0) == (measure == "area")     # the angle scale starts at 0
+    assert info["view"] == best_view(result.input_vertices, result.faces)
+
+
+def test_best_view_faces_the_broad_side_and_view_option_overrides_it(tmp_path, capsys):
+    from sphere_nlp.picture import best_view
+
+    V, F = icosphere(2)
+    azimuth, elevation = best_view(V * [0.2, 1, 1], F)         # a plate in the y-z plane
+    assert abs(np.cos(np.radians(azimuth)) * np.cos(np.radians(elevation))) > 0.95
+    status, _ = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.off", "--png", tmp_path / "p.png",
+                        "--view=-30,10", "-q")
+    assert status == 0 and (tmp_path / "p.png").read_bytes()[:8] == PNG_SIGNATURE
+    status, stderr = run_cli(capsys, MODELS / "cylinder.off", "--view", "north")
+    assert status == 2 and "--view" in stderr
 
 
 def test_png_refused_for_uncertified_results_and_bad_names(cylinder_result, tmp_path):
@@ -552,3 +605,13 @@ def test_version_and_one_program_name_in_every_message(tmp_path):
                           capture_output=True, text=True, env=checkout_env())
     for p in (usage, tool):
         assert p.returncode == 2 and p.stderr.strip().splitlines()[-1].startswith("sphere-nlp: error: ")
+
+
+def test_every_docs_picture_is_made_by_the_documented_command():
+    import ast
+
+    script = ROOT / "docs" / "make_pictures.py"
+    pictures = next(ast.literal_eval(node.value) for node in ast.parse(script.read_text()).body
+                    if isinstance(node, ast.Assign) and node.targets[0].id == "PICTURES")
+    assert sorted(pictures) == sorted(p.name for p in (ROOT / "docs").glob("*.png"))
+    assert "python docs/make_pictures.py" in (ROOT / "README.md").read_text()
