@@ -7,7 +7,7 @@ IPOPT makes its KKT matrix's inertia right by adding one multiple of the identit
 Hessian. In the area modes' margin stage a few local non-convex spots (reduced-Hessian eigenvalues of
 about -1e-3..-1e-2 on 16-62 variables each) set that shift, and it then damps every soft mode of the
 rest of the mesh (curvature ~1e-3) to a fraction of its Newton step: the long tail of those stages
-(benchmarks/results.md). This script tests the remedy with an oracle: at every Hessian
+(docs/design.md, *Clipped Hessian*). This script tests the remedy with an oracle: at every Hessian
 evaluation of the margin stage it finds the smallest eigenpairs of the reduced Hessian Z^T W Z (W the
 Hessian handed to IPOPT, Z the constraints' null space) by shift-invert Lanczos on the KKT matrix, and
 for each negative one adds 2 |lambda| / 0.95 to the diagonal on the variables that hold 95% of its

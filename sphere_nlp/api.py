@@ -1,5 +1,6 @@
 """The Python API: :func:`parameterize` runs the whole pipeline and returns one result object."""
 
+import os
 import resource
 import sys
 import time
@@ -12,11 +13,12 @@ from . import errors
 from .certify import Certificate, certify, spherical_angles
 from .repair import prepare_mesh
 from .metrics import distortion_summary
-from .mesh_io import check_mesh_path, load_mesh, write_json, write_mesh, write_npz
+from .mesh_io import (check_mesh_path, load_mesh, write_image, write_json, write_material, write_mesh,
+                      write_npz)
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS, status_kind
 from .solve import ON_LIMIT, solve_angles
 from .targets import MODES, make_targets
-from .texture import spherical_uv
+from .texture import checker_image, spherical_uv, split_at_seams
 from .unfold import unfold
 
 
@@ -152,33 +154,92 @@ class SphericalParameterization:
         """
         return spherical_uv(self.vertices, self.faces)
 
-    def write(self, path):
+    def write(self, path, texture=None):
         """Write the sphere mesh (OFF, OBJ or PLY by extension).
 
         An OBJ also carries texture coordinates (:meth:`texture_coordinates`, ``f v/vt`` faces), so
         an equirectangular image (a world map, an environment map) wraps onto it as onto a globe.
+        With ``texture`` (a .png path, OBJ only) a checkerboard image is written there and an MTL file
+        beside the OBJ (same stem, ``.mtl``) that the OBJ references, so viewers show the texture.
 
         Refuses (raising :class:`SolveError` or :class:`CertificateError`, writing nothing) a result
         whose solve stopped short, e.g. at an iteration or time limit, even if its positions happen to
         pass the certificate, and any uncertified result.
+
+        Example
+        -------
+        ``result.write("cylinder.obj", texture="checker.png")`` writes checker.png, cylinder.mtl and
+        cylinder.obj.
         """
         self._refuse_unless_certified()
         check_mesh_path(path)
-        uv = self.texture_coordinates() if Path(path).suffix.lower() == ".obj" else None
-        write_mesh(path, self.vertices, self.faces, uv)
+        is_obj = Path(path).suffix.lower() == ".obj"
+        uv = self.texture_coordinates() if is_obj else None
+        material = self._write_texture(path, texture) if texture is not None else None
+        write_mesh(path, self.vertices, self.faces, uv, material=material)
 
-    def write_textured_input(self, path):
+    def write_textured_input(self, path, texture=None):
         """Write the *input* mesh as OBJ with the sphere's texture coordinates.
 
         This is the file to paint or texture: positions are the input's (the repaired vertex set, see
         ``vertex_map``), ``vt`` are the longitude and latitude of each corner on the sphere, so an
-        equirectangular image wraps onto the model through the spherical map. Refuses uncertified
-        results like :meth:`write`.
+        equirectangular image wraps onto the model through the spherical map. ``texture`` as in
+        :meth:`write`. Refuses uncertified results like :meth:`write`.
         """
         self._refuse_unless_certified()
         if Path(path).suffix.lower() != ".obj":
             raise errors.UsageError("cannot write %s: a textured mesh must be .obj" % path)
-        write_mesh(path, self.input_vertices, self.faces, self.texture_coordinates())
+        material = self._write_texture(path, texture) if texture is not None else None
+        write_mesh(path, self.input_vertices, self.faces, self.texture_coordinates(), material=material)
+
+    @staticmethod
+    def _write_texture(obj_path, texture):
+        """Write the checker PNG and the MTL for an OBJ; return the MTL's name for ``mtllib``."""
+        obj_path, texture = Path(obj_path), Path(texture)
+        if obj_path.suffix.lower() != ".obj":
+            raise errors.UsageError("cannot texture %s: only OBJ carries texture coordinates" % obj_path)
+        if texture.suffix.lower() != ".png":
+            raise errors.UsageError("cannot write %s: a texture must be .png" % texture)
+        folder = obj_path.parent
+        mtl = obj_path.with_suffix(".mtl")
+        write_image(texture, checker_image())
+        # MTL paths are relative to the MTL file; forward slashes work in every viewer.
+        write_material(mtl, Path(os.path.relpath(texture.resolve(), folder.resolve())).as_posix())
+        return mtl.name
+
+    def to_trimesh(self, textured=False, geometry="sphere"):
+        """The result as a :class:`trimesh.Trimesh`.
+
+        Parameters
+        ----------
+        textured : bool
+            If True, vertices are split where texture coordinates differ (the seam and the poles,
+            :func:`sphere_nlp.texture.split_at_seams`) and the mesh gets
+            :class:`trimesh.visual.TextureVisuals` with the sphere's (u, v) and a checkerboard image,
+            so ``mesh.show()`` or ``mesh.export("x.glb")`` shows the map. If False, one vertex per
+            vertex of ``vertices`` and no visuals.
+        geometry : "sphere" or "input"
+            Positions on the unit sphere, or the input's (the repaired vertex set).
+
+        Example
+        -------
+        >>> import sphere_nlp
+        >>> result = sphere_nlp.parameterize("models/cylinder.off")     # doctest: +SKIP
+        >>> mesh = result.to_trimesh(textured=True, geometry="input")   # doctest: +SKIP
+        """
+        import trimesh
+        from trimesh.visual import TextureVisuals
+
+        if geometry not in ("sphere", "input"):
+            raise errors.UsageError("geometry must be 'sphere' or 'input', not %r" % (geometry,))
+        positions = self.vertices if geometry == "sphere" else self.input_vertices
+        if not textured:
+            return trimesh.Trimesh(positions, self.faces, process=False)
+        from PIL import Image
+
+        source, faces, uv = split_at_seams(self.faces, self.texture_coordinates())
+        visual = TextureVisuals(uv=uv, image=Image.fromarray(checker_image(), "RGB"))
+        return trimesh.Trimesh(positions[source], faces, visual=visual, process=False)
 
     def distortion(self):
         """How far the map is from the input's angles and areas (a :mod:`~sphere_nlp.metrics` summary).
@@ -191,24 +252,28 @@ class SphericalParameterization:
         """
         return distortion_summary(_unit_size(self.input_vertices), self.vertices, self.faces)
 
-    def write_png(self, path, measure="area"):
+    def write_png(self, path, measure=None, view=None):
         """Write a PNG: the input mesh and the sphere coloured by distortion, and a checkerboarded mesh.
 
-        ``measure`` is "area" (log area ratio) or "angle" (angle distortion, degrees); see
+        ``measure`` is "area" (log area ratio) or "angle" (angle distortion, degrees); by default the
+        one the mode does not optimise (angle distortion for the area modes, log area ratio for the
+        angle modes), which is where its map pays. ``view`` = (azimuth, elevation) in degrees, by
+        default the side of the mesh with the most projected area. See
         :func:`sphere_nlp.picture.render_png`. Written atomically; refuses uncertified results like
         :meth:`write`.
         """
         self._refuse_unless_certified()
         if Path(path).suffix.lower() != ".png":
             raise errors.UsageError("cannot write %s: a picture must be .png" % path)
-        from .picture import render_png           # matplotlib loads only when a picture is wanted
+        from .picture import default_measure, render_png   # matplotlib loads only when a picture is wanted
 
         summary = self.distortion()
         title = ("%s: %d vertices, mean angle distortion %.1f°, mean |log area ratio| %.3f"
                  % (self.target, len(self.vertices), summary["mean_abs_angle_diff_deg"],
                     summary["mean_abs_log_area"]))
-        render_png(path, _unit_size(self.input_vertices), self.vertices, self.faces, measure=measure,
-                   title=title)
+        return render_png(path, _unit_size(self.input_vertices), self.vertices, self.faces,
+                          measure=measure or default_measure(self.target), title=title, view=view,
+                          corner_uv=self.texture_coordinates())
 
     def save_solution(self, path):
         """Write vertices, faces, angles, excess, the targets and the vertex map to an .npz archive."""

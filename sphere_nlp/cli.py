@@ -10,7 +10,7 @@ import time
 import traceback
 from pathlib import Path
 
-from . import errors
+from . import __version__, errors
 from .mesh_io import check_mesh_path
 from .nlp import FORMULATIONS
 from .solve import ON_LIMIT
@@ -33,15 +33,23 @@ def build_parser():
                     "`sphere-nlp compare MESH... --out DIR` compares sphere_nlp with the baselines.",
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("input", help="input mesh (OFF, OBJ, PLY, STL, anything trimesh reads)")
+    parser.add_argument("--version", action="version", version="sphere-nlp " + __version__)
     out = parser.add_argument_group("output (each written atomically, only for a certified sphere)")
     out.add_argument("-o", "--output", metavar="OUT", help="sphere mesh, .off/.obj/.ply; .obj carries longitude/latitude "
                                             "texture coordinates (default: <input stem>.sphere.off here)")
     out.add_argument("--png", metavar="OUT.png",
                      help="picture: mesh and sphere coloured by distortion, mesh checkerboarded")
-    out.add_argument("--png-measure", choices=("area", "angle"), default="area",
-                     help="colouring of the picture: log area ratio (default) or angle distortion")
+    out.add_argument("--png-measure", choices=("area", "angle"),
+                     help="colouring of the picture: log area ratio or angle distortion (default: the "
+                          "one the target mode does not optimise)")
+    out.add_argument("--view", metavar="AZ,EL", type=_view,
+                     help="camera azimuth and elevation of the picture, degrees (default: the side "
+                          "with the most projected area)")
     out.add_argument("--textured-input", metavar="OUT.obj",
                      help="the input mesh with the sphere's texture coordinates, to paint or texture")
+    out.add_argument("--texture", metavar="NAME.png",
+                     help="with an OBJ output: write a checkerboard texture NAME.png and an .mtl beside "
+                          "each OBJ, referenced by it, so viewers show the map")
     out.add_argument("--report", metavar="R.json", help="run statistics as JSON (also on failure)")
     out.add_argument("--save-solution", metavar="S.npz",
                      help="vertices, faces, angles, excess and targets as .npz")
@@ -68,7 +76,7 @@ def build_parser():
 # modes' main stage takes 15-35 minutes at 43k-50k vertices and had not converged after 2.5 hours at
 # 173k (README, Sizes and speed).
 LONG_STAGE_S = 600.0
-LONG_STAGE_NOTE = ("sphere_nlp: note: this IPOPT stage has run for %s (large meshes in the area modes "
+LONG_STAGE_NOTE = ("sphere-nlp: note: this IPOPT stage has run for %s (large meshes in the area modes "
                    "can take hours); to bound a run, start it with --max-time SECONDS --on-limit project, which "
                    "writes a certified, not optimal, sphere when a stage reaches the limit")
 
@@ -164,9 +172,26 @@ def summary_line(output, result):
     return line
 
 
+def _view(text):
+    """``AZ,EL`` in degrees, for --view."""
+    try:
+        azimuth, elevation = (float(word) for word in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError("expected AZIMUTH,ELEVATION in degrees, e.g. -60,20; got %r" % text)
+    return azimuth, elevation
+
+
 def _check_suffix(path, suffix, what):
     if path and Path(path).suffix.lower() != suffix:
         raise errors.UsageError("cannot write %s: %s must end in %s" % (path, what, suffix))
+
+
+def _texture_beside(obj_path, texture):
+    """Where --texture goes for an OBJ: a bare file name beside the OBJ, a path as given."""
+    if not texture:
+        return None
+    texture = Path(texture)
+    return Path(obj_path).parent / texture if texture.parent == Path(".") else texture
 
 
 def run(args, progress):
@@ -178,11 +203,14 @@ def run(args, progress):
     check_mesh_path(output)
     _check_suffix(args.png, ".png", "a picture")
     _check_suffix(args.textured_input, ".obj", "a textured mesh")
+    _check_suffix(args.texture, ".png", "a texture")
+    if args.texture and output.suffix.lower() != ".obj" and not args.textured_input:
+        raise errors.UsageError("--texture needs an OBJ output (-o X.obj or --textured-input X.obj)")
 
     def on_stage(name):
         # Announced once the mesh has been read and validated, so bad input gets only its error line.
         if name == "solve":
-            progress.say("sphere_nlp: mapping %s (target %s)" % (input_path, args.target))
+            progress.say("sphere-nlp: mapping %s (target %s)" % (input_path, args.target))
         progress.stage(name)
 
     result = parameterize(str(input_path), target=args.target, angle_weight=args.angle_weight,
@@ -201,14 +229,16 @@ def run(args, progress):
         raise errors.CertificateError("the sphere failed its certificate (%s; IPOPT status %s); nothing "
                                       "written" % (result.certificate.reason, result.status))
     progress.stage("write")
-    result.write(output)
+    is_obj = output.suffix.lower() == ".obj"
+    result.write(output, texture=_texture_beside(output, args.texture) if is_obj else None)
     if args.textured_input:
-        result.write_textured_input(args.textured_input)
+        result.write_textured_input(args.textured_input,
+                                    texture=_texture_beside(args.textured_input, args.texture))
     if args.save_solution:
         result.save_solution(args.save_solution)
     if args.png:
         progress.stage("write (picture)")
-        result.write_png(args.png, measure=args.png_measure)
+        result.write_png(args.png, measure=args.png_measure, view=args.view)
     progress.say(summary_line(output, result))
     return 0
 
@@ -241,17 +271,17 @@ def main(argv=None):
     except errors.SphereNLPError as exc:
         if args.debug:
             traceback.print_exc()
-        print("sphere_nlp: error: %s" % exc, file=sys.stderr)
+        print("sphere-nlp: error: %s" % exc, file=sys.stderr)
         return exc.exit_status
     except KeyboardInterrupt:
-        print("sphere_nlp: interrupted; nothing written", file=sys.stderr)
+        print("sphere-nlp: interrupted; nothing written", file=sys.stderr)
         return 130
     except MemoryError:
-        print("sphere_nlp: error: out of memory; nothing written", file=sys.stderr)
+        print("sphere-nlp: error: out of memory; nothing written", file=sys.stderr)
         return 1
     except Exception as exc:  # a bug: still one line unless --debug
         if args.debug:
             traceback.print_exc()
-        print("sphere_nlp: internal error: %s: %s (rerun with --debug for a traceback)"
+        print("sphere-nlp: internal error: %s: %s (rerun with --debug for a traceback)"
               % (type(exc).__name__, exc), file=sys.stderr)
         return 1

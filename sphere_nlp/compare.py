@@ -5,12 +5,17 @@ Markdown table ``DIR/compare.md``, with the validity and distortion of :func:`sp
 distortion_summary` and the wall-clock time. A method that fails (a solve that does not converge, a map
 with flipped triangles, an exception) is a row with ``valid`` false and a ``status`` saying why, not an
 error: both files are rewritten atomically after every row, so an interrupted run keeps what it did.
+A mesh that cannot be read or is not a valid genus-0 surface is reported before anything runs, gets one
+row saying why (method ``-``), and the other meshes still run. ``--save-maps`` also writes each valid
+map's sphere (OBJ with texture coordinates) and picture.
 
 Methods: ``sphere_nlp:<mode>`` for the four target modes (``sphere_nlp`` selects all four),
-``conformal``, ``cmcf``, ``alexa`` and ``tutte-projection`` (see :mod:`sphere_nlp.baselines`).
+``conformal``, ``cmcf``, ``alexa`` and ``tutte-projection`` (see :mod:`sphere_nlp.baselines`); ``all``
+for every one. By default :data:`DEFAULT_METHODS`: sphere_nlp's conformal mode against the two conformal
+baselines, seconds per mesh (the area modes and Alexa's relaxation take minutes on large meshes).
 
-Exit status: 0 all rows written (whatever their validity); 2 an unreadable or invalid mesh, an unknown
-method, or an output folder that cannot be written (nothing run).
+Exit status: 0 all rows written (whatever their validity); 2 an unknown method or an output folder that
+cannot be written (nothing run), or a mesh was rejected (the others ran).
 """
 
 import argparse
@@ -27,6 +32,8 @@ from .targets import MODES
 SPHERE_NLP_METHODS = tuple("sphere_nlp:" + mode for mode in MODES)
 BASELINE_METHODS = ("conformal", "cmcf", "alexa", "tutte-projection")
 METHODS = SPHERE_NLP_METHODS + BASELINE_METHODS
+DEFAULT_METHODS = ("sphere_nlp:original-angles", "conformal", "cmcf")
+REJECTED_METHOD = "-"            # the method column of a rejected mesh's row
 
 # The columns of compare.md: (row key, header, format).
 TABLE_COLUMNS = (("mesh", "mesh", "%s"), ("method", "method", "%s"), ("valid", "valid", "%s"),
@@ -37,21 +44,23 @@ TABLE_COLUMNS = (("mesh", "mesh", "%s"), ("method", "method", "%s"), ("valid", "
 
 
 def parse_methods(text):
-    """Method names from a comma-separated list; ``sphere_nlp`` expands to the four modes.
+    """Method names from a comma-separated list; ``sphere_nlp`` expands to the four modes, ``all`` to
+    every method.
 
     Examples
     --------
     >>> parse_methods("sphere_nlp:equal-areas,tutte-projection")
     ['sphere_nlp:equal-areas', 'tutte-projection']
-    >>> len(parse_methods("sphere_nlp,cmcf"))
-    5
+    >>> len(parse_methods("sphere_nlp,cmcf")), len(parse_methods("all"))
+    (5, 8)
     """
     methods = []
     for name in (part.strip() for part in text.split(",")):
-        expanded = SPHERE_NLP_METHODS if name == "sphere_nlp" else (name,)
+        expanded = (SPHERE_NLP_METHODS if name == "sphere_nlp" else METHODS if name == "all" else (name,))
         for method in expanded:
             if method not in METHODS:
-                raise errors.UsageError("unknown method %r; choose from %s (or sphere_nlp for all four modes)"
+                raise errors.UsageError("unknown method %r; choose from %s (or sphere_nlp for its four modes, "
+                                        "all for every method)"
                                         % (name, ", ".join(METHODS)))
             if method not in methods:
                 methods.append(method)
@@ -82,7 +91,7 @@ def _metrics(mesh_vertices, positions, faces):
     return distortion_summary(mesh_vertices, positions, faces)
 
 
-def run_method(method, mesh, prepared, max_time=None):
+def run_method(method, mesh, prepared, max_time=None, keep=None):
     """One row: run ``method`` on a loaded mesh and measure it.
 
     Parameters
@@ -95,6 +104,8 @@ def run_method(method, mesh, prepared, max_time=None):
         The same mesh repaired, what the baselines run on and the metrics compare with.
     max_time : float, optional
         Wall-clock limit per IPOPT stage for sphere_nlp methods.
+    keep : dict, optional
+        Receives ``positions``, the map's sphere positions (None if it made none), for saving.
 
     Returns
     -------
@@ -136,6 +147,8 @@ def run_method(method, mesh, prepared, max_time=None):
         status = "valid" if row["valid"] else ("invalid: %s flipped" % row["flipped"]
                                                if row["flipped"] else "invalid")
     row.update(time_s=round(elapsed, 4), status=status, note=note)
+    if keep is not None:
+        keep["positions"] = positions
     return row
 
 
@@ -173,27 +186,49 @@ def write_outputs(out_dir, rows):
 
 
 def load_meshes(paths):
-    """Read and check every mesh before anything runs: [(name, (V, F), PreparedMesh)].
+    """Read and check every mesh before anything runs.
 
-    Raises a :class:`~sphere_nlp.errors.MeshInputError` naming the file for the first bad one.
+    Returns ``(loaded, rejected)``: ``loaded`` is [(name, (V, F), PreparedMesh)] of the good meshes,
+    ``rejected`` [(name, message)] of the others, each message naming the file and its defect.
     """
     from .mesh_io import load_mesh
     from .repair import prepare_mesh
 
-    loaded = []
+    loaded, rejected = [], []
     for path in paths:
         try:
             vertices, faces = load_mesh(path)
             prepared = prepare_mesh(vertices, faces)
         except errors.MeshInputError as exc:
-            if str(path) in str(exc):
-                raise
-            raise type(exc)("%s: %s" % (path, exc)) from None
+            message = str(exc) if str(path) in str(exc) else "%s: %s" % (path, exc)
+            rejected.append((Path(path).name, message))
+            continue
         loaded.append((Path(path).name, (vertices, faces), prepared))
-    return loaded
+    return loaded, rejected
 
 
-def compare(paths, out_dir, methods=METHODS, max_time=None, progress=None):
+def save_map(out_dir, name, method, mesh_vertices, positions, faces):
+    """Write a valid map's sphere (OBJ with texture coordinates) and picture as
+    ``DIR/<mesh stem>.<method>.obj`` and ``.png`` (``:`` in the method's name becomes ``-``);
+    returns the two paths. Only certified positions are written."""
+    from .certify import certify
+    from .mesh_io import write_mesh
+    from .picture import default_measure, render_png
+    from .texture import spherical_uv
+
+    if not certify(positions, faces).valid:
+        return []
+    stem = "%s.%s" % (Path(name).stem, method.replace(":", "-"))
+    sphere, picture = Path(out_dir) / (stem + ".obj"), Path(out_dir) / (stem + ".png")
+    corner_uv = spherical_uv(positions, faces)
+    write_mesh(sphere, positions, faces, corner_uv)
+    target = method.split(":", 1)[1] if method in SPHERE_NLP_METHODS else "original-angles"
+    render_png(picture, mesh_vertices, positions, faces, measure=default_measure(target),
+               title="%s: %s" % (name, method), corner_uv=corner_uv)
+    return [sphere, picture]
+
+
+def compare(paths, out_dir, methods=DEFAULT_METHODS, max_time=None, progress=None, save_maps=False):
     """Run ``methods`` on every mesh in ``paths``; write and return the rows.
 
     Parameters
@@ -206,13 +241,17 @@ def compare(paths, out_dir, methods=METHODS, max_time=None, progress=None):
     max_time : float, optional
         Wall-clock limit per IPOPT stage for the sphere_nlp methods.
     progress : callable(str), optional
-        Receives one line per row.
+        Receives one line per row, and one per rejected mesh before anything runs.
+    save_maps : bool
+        Also write each valid map's sphere and picture into ``out_dir`` (:func:`save_map`).
 
     Returns
     -------
     list of dict
         One row per (mesh, method): ``mesh``, ``method``, ``n_vertices``, ``valid``, ``flipped``, the
-        other :func:`~sphere_nlp.metrics.distortion_summary` keys, ``time_s``, ``status``, ``note``.
+        other :func:`~sphere_nlp.metrics.distortion_summary` keys, ``time_s``, ``status``, ``note``;
+        and one per rejected mesh, with ``method`` "-", ``valid`` False and ``status`` "rejected: ...".
+        If every mesh is rejected, the first one's error is raised and nothing is written.
 
     Examples
     --------
@@ -227,14 +266,26 @@ def compare(paths, out_dir, methods=METHODS, max_time=None, progress=None):
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise errors.UsageError("unknown method(s) %s; choose from %s" % (", ".join(unknown), ", ".join(METHODS)))
-    meshes = load_meshes(paths)
+    meshes, rejected = load_meshes(paths)
+    if not meshes:
+        first = rejected[0][1]
+        raise errors.MeshInputError(first if len(rejected) == 1 else "%s (and %d more rejected)"
+                                    % (first, len(rejected) - 1))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    rows = []
+    rows = [{"mesh": name, "method": REJECTED_METHOD, "valid": False, "status": "rejected: " + message}
+            for name, message in rejected]
+    for _, message in rejected:
+        if progress:
+            progress("skipping %s" % message)
     for name, mesh, prepared in meshes:
         for method in methods:
+            kept = {}
             row = {"mesh": name, "method": method, "n_vertices": len(prepared.vertices),
-                   **run_method(method, mesh, prepared, max_time=max_time)}
+                   **run_method(method, mesh, prepared, max_time=max_time, keep=kept)}
+            if save_maps and row["valid"]:
+                row["files"] = [str(p) for p in save_map(out_dir, name, method, prepared.vertices,
+                                                         kept["positions"], prepared.faces)]
             rows.append(row)
             write_outputs(out_dir, rows)
             if progress:
@@ -247,14 +298,18 @@ def compare(paths, out_dir, methods=METHODS, max_time=None, progress=None):
 def main(argv=None):
     """``python -m sphere_nlp compare MESH... --out DIR [--methods ...] [--max-time S]``."""
     parser = argparse.ArgumentParser(
-        prog="sphere_nlp compare",
-        description="Map meshes with sphere_nlp's four target modes and with baseline methods; write "
-                    "validity and distortion of every map to DIR/compare.json and DIR/compare.md.")
+        prog="sphere-nlp compare",
+        description="Map meshes with sphere_nlp and with baseline methods; write the validity and "
+                    "distortion of every map to DIR/compare.json and DIR/compare.md. A rejected mesh "
+                    "is reported and skipped; the others run.")
     parser.add_argument("meshes", nargs="+", metavar="MESH", help="input meshes")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    parser.add_argument("--methods", default=",".join(METHODS),
-                        help="comma-separated, from %s; 'sphere_nlp' = its four modes (default: all)"
-                             % ", ".join(METHODS))
+    parser.add_argument("--methods", default=",".join(DEFAULT_METHODS),
+                        help="comma-separated, from %s; 'sphere_nlp' = its four modes, 'all' = every "
+                             "method (default: %s)" % (", ".join(METHODS), ",".join(DEFAULT_METHODS)))
+    parser.add_argument("--save-maps", action="store_true",
+                        help="also write each valid map's sphere (MESH.METHOD.obj, with texture "
+                             "coordinates) and picture (MESH.METHOD.png) into DIR")
     parser.add_argument("--max-time", type=float, metavar="SECONDS",
                         help="wall-clock limit per IPOPT stage for the sphere_nlp methods")
     parser.add_argument("-q", "--quiet", action="store_true", help="print only errors")
@@ -270,17 +325,21 @@ def main(argv=None):
     try:
         methods = parse_methods(args.methods)
         say("%d mesh(es) x %d method(s) -> %s" % (len(args.meshes), len(methods), args.out))
-        rows = compare(args.meshes, args.out, methods=methods, max_time=args.max_time, progress=say)
+        rows = compare(args.meshes, args.out, methods=methods, max_time=args.max_time, progress=say,
+                       save_maps=args.save_maps)
     except errors.SphereNLPError as exc:
-        print("sphere_nlp compare: error: %s" % exc, file=sys.stderr)
+        print("sphere-nlp compare: error: %s" % exc, file=sys.stderr)
         return exc.exit_status
     except OSError as exc:
-        print("sphere_nlp compare: error: cannot write to %s: %s" % (args.out, exc.strerror or exc),
+        print("sphere-nlp compare: error: cannot write to %s: %s" % (args.out, exc.strerror or exc),
               file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("sphere_nlp compare: interrupted; the rows done so far are in %s" % args.out, file=sys.stderr)
+        print("sphere-nlp compare: interrupted; the rows done so far are in %s" % args.out, file=sys.stderr)
         return 130
     say("wrote %s and %s (%d rows, %d valid)" % (Path(args.out) / "compare.json", Path(args.out) / "compare.md",
                                                  len(rows), sum(bool(r["valid"]) for r in rows)))
-    return 0
+    rejected = [r for r in rows if r["method"] == REJECTED_METHOD]
+    for row in rejected:
+        print("sphere-nlp compare: error: %s (skipped)" % row["status"].split(": ", 1)[1], file=sys.stderr)
+    return 2 if rejected else 0

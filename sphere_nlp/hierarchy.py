@@ -1,10 +1,8 @@
 """Carry a spherical map of a mesh over to its 1-to-4 subdivision (the paper's mesh hierarchy).
 
 Solving a subdivided mesh from its coarse parent's solution skips most of the way the area modes
-walk from the conformal start to their targets: on the Loop-subdivided armadillo (173k vertices,
-original-areas) the margin stage began 10 minutes in at objective 2,785 from the 43k solution
-carried over, against 46 minutes and 3,861 from the conformal start (benchmarks/results.md,
-session 15).
+walk from the conformal start to their targets, and starts their main stage nearer the optimum
+(``benchmarks/run.py --loop-from-coarse`` measures it on the Loop-subdivided armadillo).
 """
 
 import numpy as np

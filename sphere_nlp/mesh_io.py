@@ -298,7 +298,7 @@ def check_mesh_path(path):
         raise errors.UsageError("cannot write %s: output must end in %s" % (path, ", ".join(MESH_FORMATS)))
 
 
-def write_mesh(path, vertices, faces, corner_uv=None):
+def write_mesh(path, vertices, faces, corner_uv=None, material=None):
     """Write a triangle mesh as OFF, OBJ or PLY (ASCII), chosen by the extension.
 
     Coordinates are written with 17 significant digits, so they read back bit for bit and the
@@ -312,6 +312,9 @@ def write_mesh(path, vertices, faces, corner_uv=None):
     corner_uv : (t, 3, 2) float array, optional
         Texture coordinates per corner (e.g. :func:`sphere_nlp.texture.spherical_uv`), OBJ only:
         written as ``vt`` lines (one per distinct (u, v)) and ``f v/vt`` faces.
+    material : str, optional
+        OBJ only: the name of an MTL file beside the OBJ (see :func:`write_material`), referenced by
+        ``mtllib`` and used for every face, so viewers show its texture.
 
     Examples
     --------
@@ -343,7 +346,11 @@ def write_mesh(path, vertices, faces, corner_uv=None):
             out.write("\n".join("3 %d %d %d" % tuple(f) for f in faces) + "\n")
         elif suffix == ".obj":
             out.write("# written by sphere_nlp\n")
+            if material is not None:
+                out.write("mtllib %s\n" % material)
             out.write("".join("v " + line + "\n" for line in vertex_lines.split("\n")))
+            if material is not None:
+                out.write("usemtl %s\n" % MATERIAL_NAME)
             if corner_uv is None:
                 out.write("\n".join("f %d %d %d" % tuple(f + 1) for f in faces) + "\n")
             else:
@@ -355,6 +362,25 @@ def write_mesh(path, vertices, faces, corner_uv=None):
                       % (len(vertices), len(faces)))
             out.write(vertex_lines + "\n")
             out.write("\n".join("3 %d %d %d" % tuple(f) for f in faces) + "\n")
+
+
+MATERIAL_NAME = "sphere_nlp_texture"
+
+
+def write_material(path, texture):
+    """Write an MTL file whose one material shows the image ``texture`` (a path relative to the MTL)
+    unlit, as OBJ viewers expect: white diffuse colour times the texture, no specular highlight."""
+    with atomic_output(path) as out:
+        out.write("# written by sphere_nlp\nnewmtl %s\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\n"
+                  "map_Kd %s\n" % (MATERIAL_NAME, texture))
+
+
+def write_image(path, rgb):
+    """Write an (h, w, 3) uint8 image as PNG, atomically."""
+    from PIL import Image                      # Pillow comes with matplotlib
+
+    with atomic_output(path, "wb") as out:
+        Image.fromarray(np.asarray(rgb, np.uint8), "RGB").save(out, format="PNG")
 
 
 def _write_obj_uv(out, faces, corner_uv):

@@ -9,18 +9,27 @@ needed):
 3. the input mesh textured with a checkerboard in the sphere's longitude and latitude, the (u, v) of
    :mod:`sphere_nlp.texture`: squares that stay square mean angles are kept, equal sizes mean areas are.
 
+Choices that make the picture say something:
+
+* **View.** Unless one is given, the camera looks from the direction in which the mesh shows the most
+  projected area (:func:`best_view`), so a model is seen from its broad side, not end-on.
+* **Colour range.** The 2nd to 98th percentile of the measure, weighted by surface area (what the
+  eye sees); the share of the surface beyond it is stated under the colour bar, so a few extreme
+  slivers cannot wash the picture out. The log area ratio keeps white at 0 (a triangle keeping its
+  share of the surface) with each side of the scale stretched to its own percentile, so a mesh whose
+  ears shrink e^-14 still shows the body's ±0.5.
+* **Checkerboard.** Each triangle is cut exactly along the checker lines in its (u, v) (linear in the
+  triangle, as a viewer's texture lookup is), so square edges are straight, not staircases.
+
 Triangles are drawn flat with Lambert shading; those facing away from the camera are culled and the
 rest depth-sorted by mplot3d (painter's algorithm), exact for the sphere and good for most meshes.
-Panel 3 splits triangles into 4, 16 or 64 pieces for a finer checkerboard only while the pieces stay
-under ``max_faces``, which keeps large meshes fast (every visible triangle is always drawn: leaving
-some out would leave holes).
 """
 
 import numpy as np
 
 from .mesh_io import atomic_output
 
-# Camera (degrees) of every panel: a little from above, as in the Fig. 3 reproduction.
+# The camera (degrees) when a view is neither given nor chosen: a little from above, as in Fig. 3.
 VIEW_ELEVATION, VIEW_AZIMUTH = 20.0, -60.0
 CHECKER_SQUARES = (16, 8)            # along longitude, along latitude: 22.5-degree squares
 CHECKER_COLOURS = np.array([[0.95, 0.93, 0.88], [0.85, 0.25, 0.15]])
@@ -28,6 +37,7 @@ MEASURES = {
     "area": ("log(sphere area / mesh area)", "RdBu_r"),
     "angle": ("angle distortion (degrees)", "viridis"),
 }
+COLOUR_PERCENTILES = (2.0, 98.0)     # area-weighted; the rest is clipped and its share stated
 
 
 def triangle_measure(mesh_vertices, sphere_vertices, faces, measure="area"):
@@ -110,58 +120,191 @@ def _shade(colours, normals, eye):
     return shaded
 
 
-def _draw(ax, triangles, colours, eye, edges=False):
-    """Draw the visible triangles of one panel (coordinates already in [-1, 1]^3)."""
+def _draw(ax, triangles, colours, view, edges=False, pieces=None):
+    """Draw the visible triangles of one panel (coordinates already in [-1, 1]^3).
+
+    ``pieces`` = (polygons, parent) draws polygons cut from the triangles instead, each shaded and
+    culled as its parent triangle; ``colours`` are then the pieces'.
+    """
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
+    azimuth, elevation = view
+    eye = camera_direction(elevation, azimuth)
     order, normals = _visible(triangles, eye)
-    shaded = _shade(colours[order], normals[order], eye)
-    # Without drawn edges, outline each triangle in its own colour: antialiasing would otherwise
+    if pieces is None:
+        polygons, shaded = triangles[order], _shade(colours[order], normals[order], eye)
+    else:
+        polygons, parent = pieces
+        shown = np.zeros(len(triangles), bool)
+        shown[order] = True
+        keep = np.flatnonzero(shown[parent])
+        polygons = [polygons[i] for i in keep]
+        shaded = _shade(colours[keep], normals[parent[keep]], eye)
+    # Without drawn edges, outline each polygon in its own colour: antialiasing would otherwise
     # leave light seams between neighbours.
-    faces = Poly3DCollection(triangles[order], facecolors=shaded,
+    faces = Poly3DCollection(polygons, facecolors=shaded,
                              edgecolors=(0.1, 0.1, 0.1, 0.35) if edges else shaded, linewidths=0.3)
     ax.add_collection3d(faces)
     ax.set_xlim(-1, 1)
     ax.set_ylim(-1, 1)
     ax.set_zlim(-1, 1)
     ax.set_box_aspect((1, 1, 1), zoom=1.2)
-    ax.view_init(elev=VIEW_ELEVATION, azim=VIEW_AZIMUTH)
+    ax.view_init(elev=elevation, azim=azimuth)
     ax.set_axis_off()
-    return len(order)
+    return len(polygons)
 
 
-def checker_triangles(mesh_vertices, sphere_vertices, faces, levels):
-    """Split each triangle into 4**levels and colour each piece by the checker of its sphere point.
+def best_view(vertices, faces, step=15.0):
+    """(azimuth, elevation) in degrees from which the mesh shows the most projected area.
 
-    The sphere point of a piece is its centroid's barycentric blend of the triangle's three sphere
-    positions, projected onto the sphere; its longitude and latitude pick the square.
+    Scores every direction of a 15-degree grid (elevations -75..75) by the area of the front-facing
+    triangles projected onto the image plane (for a convex shape, its silhouette's area), and
+    prefers, by up to 3%, views near the default (from a little above).
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import icosphere
+    >>> V, F = icosphere(2)
+    >>> best_view(V * [1, 0.2, 1], F)[0] in (-90.0, 90.0)     # a flat plate is seen face-on
+    True
+    """
+    vertices, faces = np.asarray(vertices, float), np.asarray(faces, np.int64)
+    triangles = vertices[faces]
+    area_vectors = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]) / 2
+    if np.einsum("ij,ij->i", triangles[:, 0] - vertices.mean(axis=0), area_vectors).sum() < 0:
+        area_vectors = -area_vectors                      # wound inward: outward normals all the same
+    elevations = np.arange(-75.0, 75.0 + 1e-9, step)
+    azimuths = np.arange(-180.0, 180.0, step)
+    views = np.array([(el, az) for el in elevations for az in azimuths])
+    directions = np.array([camera_direction(el, az) for el, az in views])       # (k, 3)
+    projected = np.clip(area_vectors @ directions.T, 0, None).sum(axis=0)
+    preference = 1 + 0.03 * (directions @ camera_direction() + 1) / 2
+    el, az = views[int(np.argmax(projected * preference))]
+    return float(az), float(el)
+
+
+def weighted_percentile(values, weights, q):
+    """Percentile ``q`` (0-100) of ``values`` where each counts with its weight: the smallest value
+    with at least ``q`` percent of the weight at or below it.
+
+    Examples
+    --------
+    >>> float(weighted_percentile([0.0, 1.0, 2.0], [1.0, 1.0, 2.0], 50))
+    1.0
+    >>> float(weighted_percentile([0.0, 10.0], [99.0, 1.0], 98))
+    0.0
+    """
+    values, weights = np.asarray(values, float), np.asarray(weights, float)
+    order = np.argsort(values)
+    values, weights = values[order], weights[order]
+    cumulative = np.cumsum(weights)
+    if cumulative[-1] <= 0:
+        return float(np.percentile(values, q))
+    index = np.searchsorted(cumulative / cumulative[-1], q / 100 - 1e-12)
+    return float(values[min(index, len(values) - 1)])
+
+
+def colour_range(values, weights, measure):
+    """(low, high, clipped share): the weighted 2nd..98th percentile range of a measure, and the share
+    of the weight beyond it.
+
+    For the signed log area ratio the range contains 0 with each side at least a tenth of the other
+    (drawn with white at 0); the angle distortion's starts at 0.
+
+    Examples
+    --------
+    >>> v = np.r_[np.linspace(-1, 1, 98), 50.0, -50.0]
+    >>> low, high, share = colour_range(v, np.ones(100), "area")
+    >>> round(low, 2), round(high, 2), share
+    (-1.0, 0.98, 0.03)
+    >>> colour_range(np.r_[np.zeros(50), np.full(50, 4.0)], np.ones(100), "area")[:2]
+    (-0.4, 4.0)
+    """
+    values, weights = np.asarray(values, float), np.asarray(weights, float)
+    finite = np.isfinite(values)
+    if not finite.any():
+        return (-1.0, 1.0, 0.0) if measure == "area" else (0.0, 1.0, 0.0)
+    values, weights = values[finite], weights[finite]
+    low_q, high_q = (weighted_percentile(values, weights, q) for q in COLOUR_PERCENTILES)
+    if measure == "area":
+        low, high = min(low_q, 0.0), max(high_q, 0.0)
+        low, high = min(low, -0.1 * high, -1e-3), max(high, -0.1 * low, 1e-3)
+    else:
+        low, high = 0.0, max(high_q, 1e-3)
+    beyond = weights[(values < low) | (values > high)].sum()
+    return low, high, float(beyond / max(weights.sum(), 1e-300))
+
+
+def _split(polygon, axis, cut):
+    """The parts of a convex polygon (rows u, v, x, y, z, linear in each other) below and above
+    ``row[axis] = cut`` (Sutherland-Hodgman)."""
+    side = polygon[:, axis] - cut
+    below, above = [], []
+    for k in range(len(polygon)):
+        p, q, sp, sq = polygon[k], polygon[(k + 1) % len(polygon)], side[k], side[(k + 1) % len(polygon)]
+        (below if sp <= 0 else above).append(p)
+        if (sp < 0 < sq) or (sq < 0 < sp):
+            crossing = p + (q - p) * (sp / (sp - sq))
+            below.append(crossing)
+            above.append(crossing)
+    return [np.array(part) for part in (below, above) if len(part) >= 3]
+
+
+def checker_pieces(positions, faces, corner_uv, squares=CHECKER_SQUARES):
+    """Cut each triangle along the checker lines of its (u, v) (linear in the triangle, as a texture
+    lookup is) and give each piece its square's value.
 
     Returns
     -------
-    triangles : (t * 4**levels, 3, 3) float array
-        The pieces on the input mesh.
-    checker_value : (t * 4**levels,) int array
-        0 or 1.
-    """
-    from .texture import checker, longitude_latitude
+    polygons : list of (k, 3) arrays
+        The pieces on ``positions``; a triangle inside one square stays whole.
+    value : (m,) int array
+        0 or 1 per piece, as :func:`sphere_nlp.texture.checker`.
+    parent : (m,) int array
+        The triangle each piece comes from.
 
-    bary = np.array([[[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]])
-    for _ in range(levels):
-        a, b, c = bary[:, 0], bary[:, 1], bary[:, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        bary = np.concatenate([np.stack(s, axis=1) for s in
-                               ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
-    M = mesh_vertices[faces]                                   # (t, 3, 3)
-    S = sphere_vertices[faces]
-    triangles = np.einsum("pkj,tjd->tpkd", bary, M).reshape(-1, 3, 3)
-    centre = np.einsum("pj,tjd->tpd", bary.mean(axis=1), S).reshape(-1, 3)
-    longitude, latitude = longitude_latitude(centre / np.linalg.norm(centre, axis=1, keepdims=True))
-    uv = np.c_[longitude / (2 * np.pi) + 0.5, latitude / np.pi + 0.5]
-    return triangles, checker(uv, CHECKER_SQUARES)
+    Examples
+    --------
+    >>> V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    >>> uv = np.array([[[0.01, 0.01], [0.1, 0.01], [0.01, 0.1]]])
+    >>> polygons, value, parent = checker_pieces(V, np.array([[0, 1, 2]]), uv)
+    >>> len(polygons), value.tolist()                  # the checker line u = 1/16 cuts it in two
+    (2, [0, 1])
+    """
+    from .texture import checker
+
+    positions, faces = np.asarray(positions, float), np.asarray(faces, np.int64)
+    corner_uv = np.asarray(corner_uv, float)
+    scale = np.asarray(squares, float)
+    cell = np.floor(corner_uv * scale).astype(np.int64)              # (t, 3, 2)
+    whole = (cell == cell[:, :1]).all(axis=(1, 2))
+    polygons = list(positions[faces[whole]])
+    value = list(checker(corner_uv[whole].mean(axis=1), squares))
+    parent = list(np.flatnonzero(whole))
+    for t in np.flatnonzero(~whole):
+        pieces = [np.c_[corner_uv[t], positions[faces[t]]]]
+        for axis in (0, 1):
+            lines = np.arange(cell[t, :, axis].min() + 1, cell[t, :, axis].max() + 1) / scale[axis]
+            for cut in lines:
+                pieces = [part for piece in pieces for part in _split(piece, axis, cut)]
+        for piece in pieces:
+            polygons.append(piece[:, 2:])
+            value.append(int(checker(piece[:, :2].mean(axis=0), squares)))
+            parent.append(t)
+    return polygons, np.asarray(value, np.int64), np.asarray(parent, np.int64)
+
+
+def default_measure(target):
+    """The measure a picture shows by default: what the mode does *not* optimise (its cost).
+
+    >>> default_measure("original-areas"), default_measure("original-angles")
+    ('angle', 'area')
+    """
+    return "angle" if str(target).endswith("areas") else "area"
 
 
 def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", title=None,
-               max_faces=60000, dpi=100):
+               view=None, corner_uv=None, dpi=100):
     """Write a PNG of the map: mesh and sphere coloured by distortion, and a checkerboarded mesh.
 
     Written atomically (a temporary file beside ``path``, renamed into place).
@@ -178,15 +321,18 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
         Colouring of panels 1 and 2 (see :func:`triangle_measure`).
     title : str, optional
         A line above the panels.
-    max_faces : int
-        Panel 3 splits each triangle into 4, 16 or 64 pieces only while the total stays under this;
-        it bounds the drawing time (an 86,000-triangle mesh draws in about 3 s).
+    view : (azimuth, elevation) in degrees, optional
+        The camera; by default :func:`best_view` of the mesh.
+    corner_uv : (t, 3, 2) float array, optional
+        Texture coordinates of the checkerboard; by default
+        :func:`sphere_nlp.texture.spherical_uv` of the sphere, as in the OBJ.
     dpi : int
 
     Returns
     -------
     dict
-        ``colour_limits`` of the measure and the number of triangles drawn per panel.
+        ``colour_limits``, ``clipped_share`` (of the surface beyond them), ``view``, the number of
+        polygons drawn per panel (``drawn``) and ``checker_pieces``.
 
     Examples
     --------
@@ -201,30 +347,31 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
+    from matplotlib.colors import Normalize, TwoSlopeNorm
     from matplotlib.figure import Figure
+
+    from .metrics import normalised_areas_3d
+    from .texture import spherical_uv
 
     mesh_vertices = np.asarray(mesh_vertices, float)
     sphere_vertices = np.asarray(sphere_vertices, float)
     faces = np.asarray(faces, np.int64)
-    label, colour_map_name = MEASURES.get(measure, (None, None))
+    if measure not in MEASURES:
+        raise ValueError("measure must be one of %s, got %r" % (", ".join(MEASURES), measure))
+    label, colour_map_name = MEASURES[measure]
     values = triangle_measure(mesh_vertices, sphere_vertices, faces, measure)
-    finite = values[np.isfinite(values)]
-    # Robust limits: the 98th percentile, so a few extreme slivers do not wash out the picture.
-    spread = float(np.percentile(np.abs(finite), 98)) if len(finite) else 1.0
-    spread = max(spread, 1e-3)
-    norm = Normalize(-spread, spread) if measure == "area" else Normalize(0, spread)
+    low, high, clipped = colour_range(values, normalised_areas_3d(mesh_vertices, faces), measure)
+    norm = TwoSlopeNorm(0.0, low, high) if measure == "area" else Normalize(low, high)
     colour_map = matplotlib.colormaps[colour_map_name]
     colours = colour_map(norm(np.nan_to_num(values, nan=0.0)))
 
-    eye = camera_direction()
+    view = tuple(float(a) for a in view) if view is not None else best_view(mesh_vertices, faces)
     mesh = _normalised(mesh_vertices)
     sphere = sphere_vertices @ align_sphere_to_mesh(mesh_vertices, sphere_vertices).T
     edges = len(faces) <= 2000
-    levels = 0
-    while levels < 3 and len(faces) * 4 ** (levels + 1) <= max_faces:
-        levels += 1
-    pieces, checker_value = checker_triangles(mesh, sphere_vertices, faces, levels)
+    if corner_uv is None:
+        corner_uv = spherical_uv(sphere_vertices, faces)
+    polygons, checker_value, parent = checker_pieces(mesh, faces, corner_uv)
     checker_colours = np.c_[CHECKER_COLOURS[checker_value], np.ones(len(checker_value))]
 
     fig = Figure(figsize=(15, 5.6), dpi=dpi)
@@ -232,20 +379,24 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
     drawn = []
     captions = ("mesh, coloured by %s" % label.split(" (")[0], "sphere, same colours",
                 "mesh with a longitude/latitude checkerboard")
-    panels = ((mesh[faces], colours, edges), (sphere[faces], colours, edges),
-              (pieces, checker_colours, False))
-    for k, (triangles, panel_colours, panel_edges) in enumerate(panels):
+    panels = ((mesh[faces], colours, edges, None), (sphere[faces], colours, edges, None),
+              (mesh[faces], checker_colours, False, (polygons, parent)))
+    for k, (triangles, panel_colours, panel_edges, pieces) in enumerate(panels):
         # Fixed boxes and captions under each: 3D axes place their titles unreliably.
         ax = fig.add_axes((k / 3, 0.19, 1 / 3, 0.74), projection="3d")
-        drawn.append(_draw(ax, triangles, panel_colours, eye, panel_edges))
+        drawn.append(_draw(ax, triangles, panel_colours, view, panel_edges, pieces))
         fig.text(k / 3 + 1 / 6, 0.17, captions[k], ha="center", fontsize=12)
     bar_axes = fig.add_axes((0.12, 0.085, 0.42, 0.025))
     bar = fig.colorbar(ScalarMappable(norm=norm, cmap=colour_map), cax=bar_axes, orientation="horizontal",
                        extend="both" if measure == "area" else "max")
-    bar.set_label(label, fontsize=11)
+    if measure == "area":       # ticks on both sides of 0, however unequal the two sides are
+        bar.set_ticks(np.r_[np.linspace(low, 0, 4)[:-1], 0.0, np.linspace(0, high, 4)[1:]])
+        bar.ax.xaxis.set_major_formatter("{x:.2g}")
+    bar.set_label("%s; %.1f%% of the surface beyond the range" % (label, 100 * clipped), fontsize=11)
+    fig.text(0.56, 0.085, "view: azimuth %g°, elevation %g°" % view, fontsize=10)
     if title:
         fig.text(0.5, 0.95, title, ha="center", fontsize=13)
     with atomic_output(path, "wb") as out:
         fig.savefig(out, format="png")
-    return {"colour_limits": (float(norm.vmin), float(norm.vmax)), "drawn_triangles": drawn,
-            "checker_levels": levels}
+    return {"colour_limits": (float(norm.vmin), float(norm.vmax)), "clipped_share": clipped,
+            "view": view, "drawn": drawn, "checker_pieces": len(polygons)}

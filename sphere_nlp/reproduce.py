@@ -233,7 +233,7 @@ FIGURES = {"fig3": reproduce_fig3}
 def main(argv=None):
     """``python -m sphere_nlp reproduce FIGURE [--out DIR]``; exit 0 when every panel is certified."""
     parser = argparse.ArgumentParser(
-        prog="sphere_nlp reproduce",
+        prog="sphere-nlp reproduce",
         description="Reproduce a figure of Sheffer, Gotsman & Dyn (2004): writes the figure as PNG, "
                     "its meshes and its numbers as JSON.")
     parser.add_argument("figure", choices=sorted(FIGURES), help="which figure")
@@ -251,12 +251,12 @@ def main(argv=None):
     try:
         records = FIGURES[args.figure](args.out, progress=say)
     except OSError as exc:
-        print("sphere_nlp reproduce: error: cannot write to %s: %s" % (args.out, exc.strerror or exc),
+        print("sphere-nlp reproduce: error: cannot write to %s: %s" % (args.out, exc.strerror or exc),
               file=sys.stderr)
         return 2
     failed = [r["panel"] for r in records if not r["valid"]]
     say("wrote %s" % (Path(args.out) / ("%s.png" % args.figure)))
     if failed:
-        print("sphere_nlp reproduce: error: panel(s) %s not certified" % ", ".join(failed), file=sys.stderr)
+        print("sphere-nlp reproduce: error: panel(s) %s not certified" % ", ".join(failed), file=sys.stderr)
         return 1
     return 0

@@ -183,3 +183,48 @@ def checker(corner_uv, squares=(16, 8)):
     i = np.floor(corner_uv[..., 0] * squares[0]).astype(np.int64)
     j = np.floor(corner_uv[..., 1] * squares[1]).astype(np.int64)
     return (i + j) % 2
+
+
+CHECKER_COLOURS = ((238, 238, 238), (44, 96, 168))   # light grey and blue, RGB
+
+
+def checker_image(squares=(16, 8), pixels_per_square=64):
+    """An RGB checkerboard texture (height, width, 3) uint8 matching :func:`checker` under OBJ's
+    convention (v = 0 at the image's bottom row), ``squares`` = (along u, along v).
+
+    Examples
+    --------
+    >>> image = checker_image(pixels_per_square=4)
+    >>> image.shape, image.dtype.name
+    ((32, 64, 3), 'uint8')
+    >>> bottom_left = image[-1, 0]                 # (u, v) near (0, 0): checker value 0
+    >>> bool((bottom_left == CHECKER_COLOURS[0]).all())
+    True
+    """
+    height, width = squares[1] * pixels_per_square, squares[0] * pixels_per_square
+    u = (np.arange(width) + 0.5) / width
+    v = 1 - (np.arange(height) + 0.5) / height     # image rows run top down, v bottom up
+    uv = np.stack(np.broadcast_arrays(u[None, :], v[:, None]), axis=-1)
+    return np.asarray(CHECKER_COLOURS, np.uint8)[checker(uv, squares)]
+
+
+def split_at_seams(faces, corner_uv):
+    """One vertex per distinct (vertex, uv) pair, for formats and libraries that take uv per vertex.
+
+    Returns ``(source, new_faces, vertex_uv)``: ``source[k]`` is the original vertex that new vertex
+    ``k`` copies, ``new_faces`` index the new vertices, ``vertex_uv`` is (k, 2). Vertices away from the
+    seam and the poles keep one copy.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> V, F = octahedron()
+    >>> source, new_faces, vertex_uv = split_at_seams(F, spherical_uv(V, F))
+    >>> len(source) > len(V), bool((source[new_faces] == F).all())
+    (True, True)
+    """
+    faces = np.asarray(faces, np.int64)
+    corner_uv = np.asarray(corner_uv, float).reshape(-1, 2)
+    keys = np.column_stack([faces.reshape(-1).astype(float), corner_uv])
+    unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+    return unique[:, 0].astype(np.int64), inverse.reshape(faces.shape), unique[:, 1:]

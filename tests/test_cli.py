@@ -97,17 +97,41 @@ def test_compare_records_a_failed_solve_as_a_row(tmp_path):
     assert row["valid"] is False and "failed" in row["status"]
 
 
-def test_compare_rejects_unknown_methods_and_bad_meshes_before_running(tmp_path):
+def test_compare_rejects_unknown_methods_before_running_and_skips_bad_meshes(tmp_path):
     out = tmp_path / "cmp"
     p = run("compare", MODELS / "cylinder.off", "--out", out, "--methods", "conformal,nonsense")
     assert p.returncode == 2 and "unknown method 'nonsense'" in p.stderr and not out.exists()
+    # A bad mesh is reported up front and gets a row; the good one still runs; exit 2 at the end.
     garbage = tmp_path / "garbage.off"
     garbage.write_text("OFF\n4 4 0\n0 0 0\n")
-    p = run("compare", MODELS / "cylinder.off", garbage, "--out", out, "--methods", "conformal")
-    assert p.returncode == 2 and "garbage.off" in p.stderr and "Traceback" not in p.stderr
-    assert not out.exists()                                   # the good mesh did not run either
-    p = run("compare", tmp_path / "missing.off", "--out", out)
-    assert p.returncode == 2 and "missing.off" in p.stderr and not out.exists()
+    p = run("compare", garbage, MODELS / "cylinder.off", "--out", out, "--methods", "conformal")
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    lines = p.stderr.splitlines()
+    assert "skipping" in lines[1] and "garbage.off" in lines[1]
+    assert lines[-1].startswith("sphere-nlp compare: error: ") and "garbage.off" in lines[-1]
+    rows = json.loads((out / "compare.json").read_text())
+    assert [(r["mesh"], r["method"], r["valid"]) for r in rows] == [("garbage.off", "-", False),
+                                                                   ("cylinder.off", "conformal", True)]
+    assert rows[0]["status"].startswith("rejected: ") and "truncated" in rows[0]["status"]
+    # Nothing to run at all: the error, exit 2, nothing written.
+    p = run("compare", tmp_path / "missing.off", "--out", tmp_path / "none")
+    assert p.returncode == 2 and "missing.off" in p.stderr and not (tmp_path / "none").exists()
+
+
+def test_compare_defaults_to_a_few_fast_methods_and_saves_certified_maps(tmp_path):
+    from sphere_nlp.certify import certify
+    from sphere_nlp.compare import DEFAULT_METHODS
+
+    p = run("compare", MODELS / "cylinder.off", "--out", tmp_path, "--save-maps", "-q")
+    assert p.returncode == 0, p.stderr
+    rows = json.loads((tmp_path / "compare.json").read_text())
+    assert [r["method"] for r in rows] == list(DEFAULT_METHODS) and len(DEFAULT_METHODS) <= 4
+    for row in rows:
+        stem = "cylinder.%s" % row["method"].replace(":", "-")
+        assert row["valid"] and row["files"] == [str(tmp_path / (stem + ".obj")), str(tmp_path / (stem + ".png"))]
+        V, F = load_mesh(tmp_path / (stem + ".obj"))
+        assert certify(V, F).valid
+        assert (tmp_path / (stem + ".png")).read_bytes()[:4] == b"\x89PNG"
 
 
 def test_compare_all_merge_from_replaces_and_adds_rows_without_solving(tmp_path):

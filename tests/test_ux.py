@@ -204,16 +204,69 @@ def test_png_is_a_real_picture(cylinder_result, tmp_path, measure):
 
 
 def test_png_colour_limits_follow_the_distortion(cylinder_result, tmp_path):
-    from sphere_nlp.metrics import area_log_ratio
-    from sphere_nlp.picture import render_png
+    from sphere_nlp.metrics import area_log_ratio, normalised_areas_3d
+    from sphere_nlp.picture import render_png, weighted_percentile
 
     V, F = cylinder()
     info = render_png(tmp_path / "a.png", V, cylinder_result.vertices, F)
-    log_area = area_log_ratio(V, cylinder_result.vertices, F)
+    log_area, weight = area_log_ratio(V, cylinder_result.vertices, F), normalised_areas_3d(V, F)
     low, high = info["colour_limits"]
-    assert low == -high and np.percentile(np.abs(log_area), 90) <= high <= np.abs(log_area).max()
-    assert info["drawn_triangles"][1] < len(F)               # the back of the sphere is culled
-    assert info["checker_levels"] == 3                        # small meshes get a fine checkerboard
+    assert low < 0 < high
+    assert (low, high) == (weighted_percentile(log_area, weight, 2), weighted_percentile(log_area, weight, 98))
+    beyond = (log_area < low) | (log_area > high)
+    assert info["clipped_share"] == pytest.approx(weight[beyond].sum() / weight.sum()) and info["clipped_share"] < 0.05
+    assert info["drawn"][1] < len(F)                          # the back of the sphere is culled
+    assert info["checker_pieces"] > len(F)                    # triangles cut at the checker lines
+
+
+def test_checker_pieces_are_exact_cuts_at_the_checker_lines():
+    from sphere_nlp.picture import checker_pieces
+    from sphere_nlp.texture import checker
+
+    # Positions equal to (u, v, 0), so each piece can be checked against the checker cells directly.
+    rng = np.random.default_rng(4)
+    corner_uv = rng.uniform(0, 1, size=(40, 3, 2))
+    positions = np.c_[corner_uv.reshape(-1, 2), np.zeros(120)]
+    faces = np.arange(120).reshape(-1, 3)
+    polygons, value, parent = checker_pieces(positions, faces, corner_uv)
+
+    def area(polygon):
+        x, y = polygon[:, 0], polygon[:, 1]
+        return 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+    cells = np.array([16, 8])
+    for polygon, v in zip(polygons, value):
+        centre = polygon[:, :2].mean(axis=0)
+        cell = np.floor(centre * cells)
+        # Every corner of a piece is inside (or on the border of) its centre's checker square.
+        assert (polygon[:, :2] * cells >= cell - 1e-9).all() and (polygon[:, :2] * cells <= cell + 1 + 1e-9).all()
+        assert v == checker(centre)
+    # The pieces tile each triangle exactly.
+    pieces_area = np.bincount(parent, [area(p) for p in polygons], minlength=40)
+    assert np.allclose(pieces_area, [area(positions[f]) for f in faces])
+
+
+@pytest.mark.parametrize("target, measure", [("original-angles", "area"), ("original-areas", "angle")])
+def test_picture_shows_what_the_mode_trades_away_by_default(cylinder_result, tmp_path, target, measure):
+    from sphere_nlp.picture import best_view
+
+    result = dataclasses.replace(cylinder_result, target=target)
+    info = result.write_png(tmp_path / "p.png")
+    assert (info["colour_limits"][0] < 0) == (measure == "area")     # the angle scale starts at 0
+    assert info["view"] == best_view(result.input_vertices, result.faces)
+
+
+def test_best_view_faces_the_broad_side_and_view_option_overrides_it(tmp_path, capsys):
+    from sphere_nlp.picture import best_view
+
+    V, F = icosphere(2)
+    azimuth, elevation = best_view(V * [0.2, 1, 1], F)         # a plate in the y-z plane
+    assert abs(np.cos(np.radians(azimuth)) * np.cos(np.radians(elevation))) > 0.95
+    status, _ = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.off", "--png", tmp_path / "p.png",
+                        "--view=-30,10", "-q")
+    assert status == 0 and (tmp_path / "p.png").read_bytes()[:8] == PNG_SIGNATURE
+    status, stderr = run_cli(capsys, MODELS / "cylinder.off", "--view", "north")
+    assert status == 2 and "--view" in stderr
 
 
 def test_png_refused_for_uncertified_results_and_bad_names(cylinder_result, tmp_path):
@@ -358,11 +411,11 @@ def test_terminal_progress_line_is_erased_before_an_input_error():
 def test_log_progress_is_plain_periodic_lines():
     stream = io.StringIO()
     progress = Progress(stream=stream)
-    progress.say("sphere_nlp: mapping x.off")
+    progress.say("sphere-nlp: mapping x.off")
     for i in range(100):                                      # a fast solve: no line per iteration
         progress.iteration("equality", i, 1.0, 0.0, 0.0)
     progress.stage("unfold")
-    assert stream.getvalue() == "sphere_nlp: mapping x.off\n"
+    assert stream.getvalue() == "sphere-nlp: mapping x.off\n"
     progress.last -= 10                                       # ... ten seconds later
     progress.stage("certify")
     assert stream.getvalue().splitlines()[-1].startswith("certify, ")
@@ -444,8 +497,8 @@ def readme_blocks():
 
 
 def readme_commands():
-    """Every sphere_nlp command in the README's bash blocks that runs as written (not the synopsis with
-    placeholders, not `reproduce`, which tests/test_reproduce.py runs)."""
+    """Every command in the README's bash blocks, except the set-up's install and test-suite run (which
+    CI runs through .ci/run): each must be a sphere_nlp command, so none goes untested."""
     commands = []
     for language, text in readme_blocks():
         if language != "bash":
@@ -453,9 +506,10 @@ def readme_commands():
         for line in text.splitlines():
             for part in line.split("&&"):
                 part = part.strip()
-                if (part.startswith(("sphere-nlp ", "python -m sphere_nlp ")) and "INPUT" not in part
-                        and " reproduce " not in part):
-                    commands.append(part)
+                if not part or part.startswith("pip install ") or part == "python -m pytest":
+                    continue
+                assert part.startswith(("sphere-nlp ", "python -m sphere_nlp ")), part
+                commands.append(part)
     return commands
 
 
@@ -486,3 +540,78 @@ def test_readme_python_runs_and_its_numbers_are_current(tmp_path, monkeypatch):
     assert "# %.2f: mean angle distortion" % distortion["mean_abs_angle_diff_deg"] in readme
     assert ("mean angle distortion %.2f°, mean |log area ratio| %.3f"
             % (distortion["mean_abs_angle_diff_deg"], distortion["mean_abs_log_area"])) in readme
+
+
+# --- results in the ecosystem: trimesh, textured OBJ, version, one program name ----------------------
+
+def test_to_trimesh_keeps_the_map_and_textured_splits_only_at_seams(cylinder_result):
+    import trimesh
+    from trimesh.visual import TextureVisuals
+
+    plain = cylinder_result.to_trimesh()
+    assert isinstance(plain, trimesh.Trimesh)
+    assert np.array_equal(plain.vertices, cylinder_result.vertices)
+    assert np.array_equal(plain.faces, cylinder_result.faces)
+    textured = cylinder_result.to_trimesh(textured=True, geometry="input")
+    assert isinstance(textured.visual, TextureVisuals) and textured.visual.material.image.size == (1024, 512)
+    # Same triangles, in the input's positions; each corner's vertex uv is that corner's uv.
+    assert np.allclose(textured.vertices[textured.faces], cylinder_result.input_vertices[cylinder_result.faces])
+    assert np.allclose(textured.visual.uv[textured.faces], cylinder_result.texture_coordinates())
+    n = len(cylinder_result.vertices)
+    assert n < len(textured.vertices) < n + len(cylinder_result.faces)        # split at the seam only
+    with pytest.raises(sphere_nlp.errors.UsageError):
+        cylinder_result.to_trimesh(geometry="plane")
+
+
+def test_texture_option_writes_png_and_mtl_that_the_obj_references(tmp_path):
+    import trimesh
+    from PIL import Image
+
+    (tmp_path / "out").mkdir()
+    status = main([str(MODELS / "cylinder.off"), "-o", str(tmp_path / "out" / "c.obj"), "--texture",
+                   "checker.png", "--textured-input", str(tmp_path / "painted.obj"), "-q"])
+    assert status == 0
+    for obj, folder in ((tmp_path / "out" / "c.obj", tmp_path / "out"), (tmp_path / "painted.obj", tmp_path)):
+        lines = obj.read_text().splitlines()
+        assert "mtllib %s" % obj.with_suffix(".mtl").name in lines and any(l.startswith("usemtl ") for l in lines)
+        assert "map_Kd checker.png" in obj.with_suffix(".mtl").read_text().splitlines()
+        image = np.asarray(Image.open(folder / "checker.png"))
+        assert image.shape == (512, 1024, 3)
+        # A viewer's texture lookup at a corner's uv gives the checker value of that uv.
+        loaded = trimesh.load(obj, process=False)
+        assert loaded.visual.material.image.size == (1024, 512)
+        _, uvs, faces = read_textured_obj(obj)
+        corner_uv = uvs[faces[:, :, 1]]
+        centres = corner_uv.mean(axis=1)
+        col = np.floor((centres[:, 0] % 1) * 1024).astype(int)
+        row = np.floor((1 - centres[:, 1]) * 512).astype(int).clip(0, 511)
+        light = image[row, col, 0] > 128
+        assert np.array_equal(light, checker(centres) == 0)
+
+
+def test_texture_without_an_obj_output_is_a_usage_error_before_solving(tmp_path, capsys):
+    status = main([str(MODELS / "cylinder.off"), "-o", str(tmp_path / "s.off"), "--texture", "c.png"])
+    assert status == 2 and not list(tmp_path.iterdir())
+    assert capsys.readouterr().err.startswith("sphere-nlp: error: --texture needs an OBJ output")
+
+
+def test_version_and_one_program_name_in_every_message(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "sphere_nlp", "--version"], capture_output=True, text=True,
+                       env=checkout_env())
+    assert p.returncode == 0 and p.stdout.strip() == "sphere-nlp " + sphere_nlp.__version__
+    usage = subprocess.run([sys.executable, "-m", "sphere_nlp"], capture_output=True, text=True,
+                           env=checkout_env())
+    tool = subprocess.run([sys.executable, "-m", "sphere_nlp", str(tmp_path / "missing.off")],
+                          capture_output=True, text=True, env=checkout_env())
+    for p in (usage, tool):
+        assert p.returncode == 2 and p.stderr.strip().splitlines()[-1].startswith("sphere-nlp: error: ")
+
+
+def test_every_docs_picture_is_made_by_the_documented_command():
+    import ast
+
+    script = ROOT / "docs" / "make_pictures.py"
+    pictures = next(ast.literal_eval(node.value) for node in ast.parse(script.read_text()).body
+                    if isinstance(node, ast.Assign) and node.targets[0].id == "PICTURES")
+    assert sorted(pictures) == sorted(p.name for p in (ROOT / "docs").glob("*.png"))
+    assert "python docs/make_pictures.py" in (ROOT / "README.md").read_text()
