@@ -66,7 +66,7 @@ def test_resampling_a_sphere_returns_the_sphere():
     # Points on flat triangles: inside by at most the chord sag of edges ~ 0.1 rad, 1 - cos(0.05).
     assert r.max() <= 1 + 1e-12 and r.min() > 1 - 2e-3
     assert np.abs(V / r[:, None] - icosphere(3)[0]).max() < 1e-12
-    h, _ = hausdorff((S, F), (V, G), samples=5000)
+    h, _ = hausdorff((S, F), (V, G), samples=20000)
     assert h < 0.05
 
 
