@@ -231,6 +231,10 @@ def main(argv=None):
         from .resample import morph_main
 
         return morph_main(argv[1:])
+    if argv[:1] == ["transfer"]:       # `python -m sphere_nlp transfer A B --values V.npy -o OUT.npy`
+        from .resample import transfer_main
+
+        return transfer_main(argv[1:])
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

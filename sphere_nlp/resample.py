@@ -207,16 +207,28 @@ def transfer(values, A, B, R=None, kind="linear"):
     return interpolate(np.asarray(values, float), FA, face, bary)
 
 
-def morph_frames(A, B, frames, R=None):
+def similarity_fit(P, Q):
+    """``Q`` moved onto paired rows ``P`` by the best rotation, uniform scale and translation."""
+    mp, mq = P.mean(axis=0), Q.mean(axis=0)
+    R = kabsch(Q - mq, P - mp)
+    Qr = (Q - mq) @ R.T
+    scale = np.sum(Qr * (P - mp)) / np.sum(Qr * Qr)
+    return scale * Qr + mp
+
+
+def morph_frames(A, B, frames, R=None, fit=False):
     """In-between shapes on A's connectivity: B resampled at A's aligned sphere, blended linearly.
 
     Returns a list of ``frames`` (n, 3) arrays; the first is A, the last is B resampled onto A's
-    sphere (faces: A's).
+    sphere (faces: A's). With ``fit``, that B is first moved onto A by the best similarity transform
+    (:func:`similarity_fit`), so the blend changes the shape, not its placement.
     """
     if frames < 2:
         raise errors.UsageError("--frames must be at least 2, got %d" % frames)
     XA = np.asarray(A[0], float)
     XB_on_A, _, _ = correspond(A, B, R)
+    if fit:
+        XB_on_A = similarity_fit(XA, XB_on_A)
     return [(1 - t) * XA + t * XB_on_A for t in np.linspace(0.0, 1.0, frames)]
 
 
@@ -320,6 +332,8 @@ def morph_main(argv=None):
     parser.add_argument("--landmarks", metavar="a:b,...",
                         help="vertex pairs (A index:B index, 3 or more) to align the spheres; default: "
                              "the shapes' principal axes")
+    parser.add_argument("--fit", action="store_true",
+                        help="move B onto A by the best rotation, scale and translation before blending")
     parser.add_argument("-q", "--quiet", action="store_true")
 
     def body(args, say):
@@ -327,24 +341,15 @@ def morph_main(argv=None):
 
         if args.frames < 2:
             raise errors.UsageError("--frames must be at least 2, got %d" % args.frames)
-        landmarks = None
-        if args.landmarks:
-            try:
-                landmarks = [tuple(int(i) for i in pair.split(":")) for pair in args.landmarks.split(",")]
-                assert all(len(p) == 2 for p in landmarks) and len(landmarks) >= 3
-            except (ValueError, AssertionError):
-                raise errors.UsageError("--landmarks must be 3 or more pairs a:b of vertex indices, got %r"
-                                        % args.landmarks) from None
+        landmarks = _parse_landmarks(args.landmarks)
         for path in (args.a, args.b, args.sphere_a, args.sphere_b):
             if path and not Path(path).is_file():
                 raise errors.UsageError("cannot read %s: no such file" % path)
         A = load_map(args.a, args.sphere_a, say)
         B = load_map(args.b, args.sphere_b, say)
-        if landmarks is not None and (max(p[0] for p in landmarks) >= len(A[0])
-                                      or max(p[1] for p in landmarks) >= len(B[0])):
-            raise errors.UsageError("--landmarks: a vertex index is out of range")
+        _check_landmarks(landmarks, A, B)
         R = align_spheres(A, B, landmarks)
-        frames = morph_frames(A, B, args.frames, R)
+        frames = morph_frames(A, B, args.frames, R, fit=args.fit)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         for i, V in enumerate(frames):
@@ -356,7 +361,71 @@ def morph_main(argv=None):
     return _run("sphere-nlp morph", parser, argv, body)
 
 
-def write_strip(path, frames, faces, count=6):
+def _parse_landmarks(text):
+    if not text:
+        return None
+    try:
+        pairs = [tuple(int(i) for i in pair.split(":")) for pair in text.split(",")]
+    except ValueError:
+        pairs = []
+    if len(pairs) < 3 or any(len(p) != 2 or min(p) < 0 for p in pairs):
+        raise errors.UsageError("--landmarks must be 3 or more pairs a:b of vertex indices, got %r" % text)
+    return pairs
+
+
+def transfer_main(argv=None):
+    """``sphere-nlp transfer A B --values VALUES.npy -o OUT.npy [--kind nearest]``."""
+    parser = argparse.ArgumentParser(
+        prog="sphere-nlp transfer",
+        description="Read per-vertex values of A (.npy, one row per vertex: a scalar field, colours, "
+                    "labels) at every vertex of B through the aligned spheres; write them as .npy.")
+    parser.add_argument("a", metavar="A")
+    parser.add_argument("b", metavar="B")
+    parser.add_argument("--values", required=True, metavar="VALUES.npy", help="A's per-vertex values")
+    parser.add_argument("-o", "--output", required=True, metavar="OUT.npy", help="B's per-vertex values")
+    parser.add_argument("--kind", choices=("linear", "nearest"), default="linear",
+                        help="linear: barycentric (fields, colours; default); nearest: labels")
+    parser.add_argument("--sphere-a", metavar="SA.off", help="an existing sphere of A")
+    parser.add_argument("--sphere-b", metavar="SB.off", help="an existing sphere of B")
+    parser.add_argument("--landmarks", metavar="a:b,...",
+                        help="vertex pairs (A index:B index, 3 or more) to align the spheres; default: "
+                             "the shapes' principal axes")
+    parser.add_argument("-q", "--quiet", action="store_true")
+
+    def body(args, say):
+        from .mesh_io import atomic_output
+
+        if not args.output.endswith(".npy"):
+            raise errors.UsageError("cannot write %s: output must end in .npy" % args.output)
+        landmarks = _parse_landmarks(args.landmarks)
+        for path in (args.a, args.b, args.values, args.sphere_a, args.sphere_b):
+            if path and not Path(path).is_file():
+                raise errors.UsageError("cannot read %s: no such file" % path)
+        try:
+            values = np.load(args.values, allow_pickle=False)
+        except ValueError as exc:
+            raise errors.UsageError("cannot read %s: %s" % (args.values, exc)) from None
+        A = load_map(args.a, args.sphere_a, say)
+        if len(values) != len(A[0]):
+            raise errors.UsageError("%s has %d rows, A has %d vertices" % (args.values, len(values), len(A[0])))
+        B = load_map(args.b, args.sphere_b, say)
+        _check_landmarks(landmarks, A, B)
+        result = transfer(values, A, B, align_spheres(A, B, landmarks), kind=args.kind)
+        with atomic_output(args.output, "wb") as handle:
+            np.save(handle, result)
+        say("wrote %s: %s values for %d vertices of %s" % (args.output, args.kind, len(result), args.b))
+        return 0
+
+    return _run("sphere-nlp transfer", parser, argv, body)
+
+
+def _check_landmarks(landmarks, A, B):
+    if landmarks is not None and (max(p[0] for p in landmarks) >= len(A[0])
+                                  or max(p[1] for p in landmarks) >= len(B[0])):
+        raise errors.UsageError("--landmarks: a vertex index is out of range")
+
+
+def write_strip(path, frames, faces, count=6, view=None):
     """A row of ``count`` frames (evenly chosen), shaded, as a PNG written atomically."""
     import matplotlib
 
@@ -370,6 +439,8 @@ def write_strip(path, frames, faces, count=6):
     for k, i in enumerate(pick):
         ax = fig.add_subplot(1, len(pick), k + 1, projection="3d")
         draw_mesh(ax, frames[i], faces)
+        if view is not None:
+            ax.view_init(*view)
         ax.set_title("frame %d" % i, fontsize=8)
     fig.tight_layout()
     with atomic_output(path, "wb") as handle:

@@ -168,3 +168,34 @@ def test_cli_bad_usage_exits_2_before_work(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 4 and all(line.startswith("sphere-nlp ") and "error:" in line for line in err)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.off", "wrong.off"]
+
+
+def test_cli_transfer_labels_and_fields(tmp_path):
+    S, F = icosphere(2)
+    X = bumpy(S)
+    Q = rotation([0, 0, 1], 1.3)
+    write_mesh(tmp_path / "a.off", X, F)
+    write_mesh(tmp_path / "a.sphere.off", S, F)
+    write_mesh(tmp_path / "b.off", X @ Q.T, F)
+    write_mesh(tmp_path / "b.sphere.off", S @ rotation([1, 1, 0], 0.4).T, F)
+    labels = np.arange(len(X)) % 7
+    np.save(tmp_path / "labels.npy", labels)
+    common = [str(tmp_path / "a.off"), str(tmp_path / "b.off"), "--sphere-a", str(tmp_path / "a.sphere.off"),
+              "--sphere-b", str(tmp_path / "b.sphere.off"), "-q"]
+    assert main(["transfer", *common, "--values", str(tmp_path / "labels.npy"), "--kind", "nearest",
+                 "-o", str(tmp_path / "out.npy")]) == 0
+    assert np.array_equal(np.load(tmp_path / "out.npy"), labels)     # a rotated copy: vertex to vertex
+    assert main(["transfer", *common, "--values", str(tmp_path / "labels.npy"), "-o",
+                 str(tmp_path / "out.txt")]) == 2
+    np.save(tmp_path / "short.npy", labels[:5])
+    assert main(["transfer", *common, "--values", str(tmp_path / "short.npy"), "-o",
+                 str(tmp_path / "out2.npy")]) == 2
+    assert not (tmp_path / "out2.npy").exists()
+
+
+def test_morph_fit_moves_b_onto_a():
+    S, F = icosphere(2)
+    X = bumpy(S)
+    Q = rotation([1, -1, 2], 0.8)
+    frames = morph_frames((X, S, F), (2.5 * X @ Q.T + [1, 2, 3], S, F), 3, np.eye(3), fit=True)
+    assert all(np.abs(frame - X).max() < 1e-9 for frame in frames)   # the same shape: nothing moves
