@@ -199,3 +199,19 @@ def test_morph_fit_moves_b_onto_a():
     Q = rotation([1, -1, 2], 0.8)
     frames = morph_frames((X, S, F), (2.5 * X @ Q.T + [1, 2, 3], S, F), 3, np.eye(3), fit=True)
     assert all(np.abs(frame - X).max() < 1e-9 for frame in frames)   # the same shape: nothing moves
+
+
+def test_spharm_recovers_a_degree_two_shape():
+    from sphere_nlp.spharm import real_harmonics, spharm_coefficients, spharm_reconstruct
+
+    S, F = icosphere(4)
+    X = bumpy(S)                                   # every coordinate a polynomial of degree <= 2 in p
+    c2 = spharm_coefficients(X, S, F, 2)
+    c4 = spharm_coefficients(X, S, F, 4)
+    P = icosphere(3)[0]
+    assert np.abs(spharm_reconstruct(c2, P) - bumpy(P)).max() < 5e-3   # interpolation error only
+    assert np.abs(c4[9:]).max() < 5e-3             # nothing above degree 2
+    assert np.allclose(c4[:9], c2, atol=5e-3)
+    # Degree 1 of x = p_x alone: Y_11 = sqrt(3 / 4 pi) p_x.
+    c = spharm_coefficients(S, S, F, 1)
+    assert abs(c[3, 0] - np.sqrt(4 * np.pi / 3)) < 5e-3 and abs(c[0, 0]) < 1e-3
