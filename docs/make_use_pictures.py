@@ -4,7 +4,7 @@
 
 Each mesh is mapped once in original-angles mode and its sphere kept in ``--spheres`` (reused when
 present; never in the project). Writes docs/use-resample.png, docs/use-transfer.png and
-docs/use-morph.png, and prints the numbers quoted on the page.
+docs/use-morph.png and docs/use-spharm.png, and prints the numbers quoted on the page.
 """
 
 import argparse
@@ -19,9 +19,11 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from sphere_nlp.mesh_io import load_mesh, write_mesh
+from sphere_nlp.mesh_io import write_mesh
 from sphere_nlp.resample import (align_spheres, draw_mesh, geometry_image, hausdorff, load_map,
                                  morph_frames, resample_icosphere, transfer, write_strip)
+from sphere_nlp.shapes import icosphere
+from sphere_nlp.spharm import spharm_coefficients, spharm_reconstruct
 
 DOCS = Path(__file__).resolve().parent
 
@@ -102,6 +104,26 @@ def main():
     # Morph: max_planck to nefertiti on max_planck's connectivity.
     frames = morph_frames(A, B, 6, R, fit=True)
     write_strip(DOCS / "use-morph.png", frames, A[2], view=head_view)
+
+    # SPHARM: spot from an original-areas map, reconstructed at a few degrees on icosphere 5.
+    mesh = meshes / "spot.obj"
+    sphere = spheres / "spot.original-areas.sphere.off"
+    if not sphere.exists():
+        from sphere_nlp.api import parameterize
+
+        result = parameterize(str(mesh), target="original-areas", max_time=150, on_limit="project")
+        write_mesh(sphere, result.vertices, result.faces)
+    XS, SS, FS = load_map(mesh, sphere)
+    P, G = icosphere(5)
+    cow_view = (15, -60)
+    panels = [("spot (%d vertices)" % len(XS), XS, FS, None, cow_view)]
+    for degree in (4, 8, 16):
+        V = spharm_reconstruct(spharm_coefficients(XS, SS, FS, degree), P)
+        h, mean = hausdorff((XS, FS), (V, G))
+        print("spot SPHARM degree %d: Hausdorff %.3g, mean distance %.3g (diagonal %.3g)"
+              % (degree, h, mean, np.linalg.norm(np.ptp(XS, axis=0))))
+        panels.append(("degree %d" % degree, V, G, None, cow_view))
+    panel_row(DOCS / "use-spharm.png", panels)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
 The map makes the shape a function x(p) of the sphere point p; its coefficients up to degree L in
 the real orthonormal spherical harmonics are fitted by least squares to the shape sampled (through
 the map) at a dense icosphere. As in medical shape analysis (Brechbühler, Gerig & Kübler 1995), the
-map should preserve area (``--target equal-areas`` or ``original-areas``), so that the sampling, and
+map should preserve area (``--target original-areas``), so that the sampling, and
 the truncation error, spread evenly over the surface.
 """
 
