@@ -257,6 +257,16 @@ def load_map(mesh_path, sphere_path=None, say=print, target="original-angles"):
     return np.asarray(X, float), np.asarray(S, float), np.asarray(F, np.int64)
 
 
+def _check_folder(path, what):
+    """UsageError, before any work, when ``path``'s folder (or, for a folder, itself) cannot take files."""
+    path = Path(path)
+    folder = path if what == "folder" else (path.parent if str(path.parent) else Path("."))
+    if what == "folder" and path.exists() and not path.is_dir():
+        raise errors.UsageError("cannot write to %s: it is a file, not a folder" % path)
+    if what != "folder" and not folder.is_dir():
+        raise errors.UsageError("cannot write %s: no folder %s" % (path, folder))
+
+
 def _run(prog, parser, argv, body):
     try:
         args = parser.parse_args(argv)
@@ -296,6 +306,7 @@ def resample_main(argv=None):
         from .mesh_io import check_mesh_path, write_mesh
 
         check_mesh_path(args.output)
+        _check_folder(args.output, "file")
         if not 0 <= args.icosphere <= 8:
             raise errors.UsageError("--icosphere must be between 0 and 8, got %d" % args.icosphere)
         for path in (args.mesh, args.sphere):
@@ -341,6 +352,7 @@ def morph_main(argv=None):
 
         if args.frames < 2:
             raise errors.UsageError("--frames must be at least 2, got %d" % args.frames)
+        _check_folder(args.out, "folder")
         landmarks = _parse_landmarks(args.landmarks)
         for path in (args.a, args.b, args.sphere_a, args.sphere_b):
             if path and not Path(path).is_file():
@@ -397,6 +409,7 @@ def transfer_main(argv=None):
 
         if not args.output.endswith(".npy"):
             raise errors.UsageError("cannot write %s: output must end in .npy" % args.output)
+        _check_folder(args.output, "file")
         landmarks = _parse_landmarks(args.landmarks)
         for path in (args.a, args.b, args.values, args.sphere_a, args.sphere_b):
             if path and not Path(path).is_file():

@@ -165,8 +165,10 @@ def test_cli_bad_usage_exits_2_before_work(tmp_path, capsys):
                  "--out", str(tmp_path / "m")]) == 2
     assert main(["morph", str(tmp_path / "a.off"), str(tmp_path / "a.off"), "--landmarks", "1:2",
                  "--out", str(tmp_path / "m")]) == 2
+    assert main(["resample", str(tmp_path / "a.off"), "-o", str(tmp_path / "no" / "r.off")]) == 2
+    assert main(["morph", str(tmp_path / "a.off"), str(tmp_path / "a.off"), "--out", str(tmp_path / "a.off")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 4 and all(line.startswith("sphere-nlp ") and "error:" in line for line in err)
+    assert len(err) == 6 and all(line.startswith("sphere-nlp ") and "error:" in line for line in err)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.off", "wrong.off"]
 
 
