@@ -253,6 +253,18 @@ def main(argv=None):
         from .compare import main as compare_main
 
         return compare_main(argv[1:])
+    if argv[:1] == ["resample"]:       # `python -m sphere_nlp resample MESH --icosphere 5 -o OUT`
+        from .resample import resample_main
+
+        return resample_main(argv[1:])
+    if argv[:1] == ["morph"]:          # `python -m sphere_nlp morph A B --frames 30 --out DIR`
+        from .resample import morph_main
+
+        return morph_main(argv[1:])
+    if argv[:1] == ["transfer"]:       # `python -m sphere_nlp transfer A B --values V.npy -o OUT.npy`
+        from .resample import transfer_main
+
+        return transfer_main(argv[1:])
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

@@ -1,0 +1,481 @@
+"""Use a sphere map: resample a shape, align two maps, transfer attributes, morph between shapes.
+
+Everything works on plain arrays: a *map* is the input positions ``X`` (n, 3), the certified sphere
+positions ``S`` (n, 3) and the shared faces ``F`` (t, 3). A point of the sphere is located in its
+spherical triangle (:mod:`sphere_nlp.locate`) and any per-vertex quantity of the input is interpolated
+there with the same barycentrics, so the input's shape, colours or fields can be read anywhere on
+the sphere: at an icosphere's vertices (remeshing), at a grid (a geometry image), or at the sphere
+positions of another shape (correspondence, transfer, morphing).
+"""
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import errors
+from .locate import SphereLocator, interpolate, nearest_corner
+from .shapes import icosphere
+
+
+def resample_at(X, S, F, points, locator=None):
+    """The input's per-vertex values ``X`` (positions or any attribute) at sphere ``points`` (m, 3).
+
+    Example
+    -------
+    >>> from sphere_nlp.shapes import icosphere
+    >>> S, F = icosphere(3)
+    >>> Y = resample_at(2.0 * S, S, F, icosphere(1)[0])
+    >>> float(np.abs(np.linalg.norm(Y, axis=1) - 2).max()) < 0.02
+    True
+    """
+    locator = locator or SphereLocator(S, F)
+    face, bary = locator.locate(points)
+    return interpolate(X, F, face, bary)
+
+
+def resample_icosphere(X, S, F, level):
+    """The input's shape on an icosphere of ``level`` (10 * 4**level + 2 vertices): (V, faces)."""
+    P, G = icosphere(level)
+    return resample_at(X, S, F, P), G
+
+
+def grid_directions(size, layout="equirectangular"):
+    """Unit directions of a ``size`` x ``size`` grid (``2 size`` wide for equirectangular): (h, w, 3).
+
+    ``equirectangular``: rows from latitude +90 to -90 degrees at pixel centres, columns longitude
+    -180 to 180 (the layout of :mod:`sphere_nlp.texture`). ``octahedral``: the unit square folded onto
+    the octahedron |x| + |y| + |z| = 1 (lower hemisphere unfolded into the corners), then normalised,
+    as in octahedral geometry images (Praun & Hoppe 2003).
+    """
+    if layout == "equirectangular":
+        lat = np.pi / 2 - (np.arange(size) + 0.5) * np.pi / size
+        lon = -np.pi + (np.arange(2 * size) + 0.5) * np.pi / size
+        LON, LAT = np.meshgrid(lon, lat)
+        D = np.stack([np.cos(LAT) * np.cos(LON), np.cos(LAT) * np.sin(LON), np.sin(LAT)], axis=-1)
+    elif layout == "octahedral":
+        u = -1 + (np.arange(size) + 0.5) * 2 / size
+        U, W = np.meshgrid(u, u[::-1])
+        Z = 1 - np.abs(U) - np.abs(W)
+        lower = Z < 0
+        U2 = np.where(lower, np.sign(U) * (1 - np.abs(W)), U)
+        W2 = np.where(lower, np.sign(W) * (1 - np.abs(U)), W)
+        D = np.stack([U2, W2, Z], axis=-1)
+        D /= np.linalg.norm(D, axis=-1, keepdims=True)
+    else:
+        raise errors.UsageError("unknown grid layout %r: equirectangular or octahedral" % layout)
+    return D
+
+
+def geometry_image(X, S, F, size, layout="equirectangular"):
+    """The input's per-vertex values sampled on a grid of sphere directions: (h, w, d) array."""
+    D = grid_directions(size, layout)
+    values = resample_at(X, S, F, D.reshape(-1, 3))
+    return values.reshape(D.shape[:2] + np.shape(values)[1:])
+
+
+def hausdorff(A, B, samples=50_000, seed=0):
+    """Symmetric Hausdorff distance between two meshes ``(V, F)``, sampled.
+
+    Each surface is sampled uniformly by area (plus its vertices); the distance is the larger of the
+    two one-sided maxima of nearest-sample distances, so it over-estimates the exact value by at most
+    about the sample spacing. Returns (hausdorff, mean one-sided distance).
+    """
+    import trimesh
+
+    points = []
+    for (V, F), s in zip((A, B), (seed, seed + 1)):
+        mesh = trimesh.Trimesh(V, F, process=False)
+        sample, _ = trimesh.sample.sample_surface(mesh, samples, seed=s)
+        points.append(np.vstack([np.asarray(V, float), sample]))
+    d_ab = cKDTree(points[1]).query(points[0])[0]
+    d_ba = cKDTree(points[0]).query(points[1])[0]
+    return float(max(d_ab.max(), d_ba.max())), float((d_ab.mean() + d_ba.mean()) / 2)
+
+
+# -- alignment of two maps ---------------------------------------------------------------------------
+
+def kabsch(P, Q, weights=None):
+    """The rotation R (det +1) minimising sum w |R p - q|^2 over paired rows of P and Q (centred)."""
+    w = np.ones(len(P)) if weights is None else np.asarray(weights, float)
+    H = (np.asarray(P) * w[:, None]).T @ np.asarray(Q)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    return Vt.T @ np.diag([1, 1, d]) @ U.T
+
+
+def _areas(S, F):
+    T = S[F]
+    return 0.5 * np.linalg.norm(np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]), axis=1)
+
+
+def first_moments(X, S, F):
+    """M = integral over the sphere of (x(p) - mean) p^T dA: the degree-1 harmonic (ellipsoid) fit.
+
+    If shape B is shape A rotated by Q and B's sphere is A's rotated by R, ``M_B = Q M_A R^T``; the
+    singular vectors of M are the shape's principal axes in space (left) and on the sphere (right).
+    """
+    w = np.zeros(len(S))
+    np.add.at(w, np.asarray(F).ravel(), np.repeat(_areas(S, F) / 3, 3))
+    Xc = X - (w[:, None] * X).sum(axis=0) / w.sum()
+    return (Xc * w[:, None]).T @ S
+
+
+def _fit_error(XA, SA, XB, SB, FB, R, points):
+    """RMS distance between A and B sampled at corresponding sphere points, after a rigid fit."""
+    YA = XA
+    YB = resample_at(XB, SB, FB, points @ R.T)
+    YA = YA - YA.mean(axis=0)
+    YB = YB - YB.mean(axis=0)
+    Q = kabsch(YA, YB)
+    return float(np.sqrt(np.mean(np.sum((YA @ Q.T - YB) ** 2, axis=1))))
+
+
+def align_spheres(A, B, landmarks=None, level=3):
+    """The rotation R of A's sphere onto B's sphere: A's sphere point p corresponds to B's point R p.
+
+    ``A`` and ``B`` are maps ``(X, S, F)``. With ``landmarks`` (pairs of vertex indices ``(a, b)``,
+    three or more), R is the Kabsch fit of A's sphere landmarks onto B's. Otherwise the principal axes
+    of the two shapes' degree-1 harmonic fits (:func:`first_moments`) are matched; the axes' signs are
+    ambiguous, so each of the 4 proper rotations they allow is tried and the one whose sphere-sampled
+    shapes (icosphere of ``level``) agree best after a rigid fit wins.
+
+    Example
+    -------
+    >>> from sphere_nlp.shapes import icosphere
+    >>> S, F = icosphere(2)
+    >>> X = S * [1.0, 1.5, 0.6] + 0.3 * S[:, [1]] ** 2
+    >>> R0 = kabsch(np.eye(3), [[0, 1, 0], [-1, 0, 0], [0, 0, 1]])
+    >>> R = align_spheres((X, S, F), (X, S @ R0.T, F))
+    >>> bool(np.allclose(R, R0, atol=1e-6))
+    True
+    """
+    XA, SA, FA = (np.asarray(a) for a in A)
+    XB, SB, FB = (np.asarray(b) for b in B)
+    if landmarks is not None:
+        pairs = np.asarray(landmarks, np.int64).reshape(-1, 2)
+        if len(pairs) < 3:
+            raise errors.UsageError("landmarks: need at least 3 pairs, got %d" % len(pairs))
+        return kabsch(SA[pairs[:, 0]], SB[pairs[:, 1]])
+    _, _, VtA = np.linalg.svd(first_moments(XA, SA, FA))
+    _, _, VtB = np.linalg.svd(first_moments(XB, SB, FB))
+    points = icosphere(level)[0]
+    XA_s = resample_at(XA, SA, FA, points)
+    best = None
+    for signs in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]):
+        R = VtB.T @ np.diag(signs) @ VtA
+        if np.linalg.det(R) < 0:            # the axes' own handedness differs: flip the last one
+            R = VtB.T @ np.diag(np.multiply(signs, [1, 1, -1])) @ VtA
+        err = _fit_error(XA_s, SA, XB, SB, FB, R, points)
+        if best is None or err < best[0]:
+            best = (err, R)
+    return best[1]
+
+
+def correspond(A, B, R=None, points=None):
+    """Map points of A onto B through both spheres: B's surface point for each of A's vertices.
+
+    ``points`` (m, 3) are sphere points of A (default: A's sphere vertices); R from
+    :func:`align_spheres` (computed when omitted). Returns (B's positions (m, 3), B's faces index (m,),
+    barycentrics (m, 3)).
+    """
+    XA, SA, FA = A
+    XB, SB, FB = B
+    R = align_spheres(A, B) if R is None else R
+    points = SA if points is None else points
+    face, bary = SphereLocator(SB, FB).locate(np.asarray(points) @ R.T)
+    return interpolate(XB, FB, face, bary), face, bary
+
+
+def transfer(values, A, B, R=None, kind="linear"):
+    """Per-vertex ``values`` of A, read at each vertex of B through the aligned spheres.
+
+    ``kind``: ``"linear"`` (barycentric; scalar fields, colours, any (n, d) array) or ``"nearest"``
+    (the value of the nearest corner of the located triangle; labels, integers).
+    """
+    XA, SA, FA = A
+    XB, SB, FB = B
+    R = align_spheres(A, B) if R is None else R
+    face, bary = SphereLocator(SA, FA).locate(np.asarray(SB) @ R)      # R^T applied to rows
+    if kind == "nearest":
+        return nearest_corner(values, FA, face, bary)
+    if kind != "linear":
+        raise errors.UsageError("unknown transfer kind %r: linear or nearest" % kind)
+    return interpolate(np.asarray(values, float), FA, face, bary)
+
+
+def similarity_fit(P, Q):
+    """``Q`` moved onto paired rows ``P`` by the best rotation, uniform scale and translation."""
+    mp, mq = P.mean(axis=0), Q.mean(axis=0)
+    R = kabsch(Q - mq, P - mp)
+    Qr = (Q - mq) @ R.T
+    scale = np.sum(Qr * (P - mp)) / np.sum(Qr * Qr)
+    return scale * Qr + mp
+
+
+def morph_frames(A, B, frames, R=None, fit=False):
+    """In-between shapes on A's connectivity: B resampled at A's aligned sphere, blended linearly.
+
+    Returns a list of ``frames`` (n, 3) arrays; the first is A, the last is B resampled onto A's
+    sphere (faces: A's). With ``fit``, that B is first moved onto A by the best similarity transform
+    (:func:`similarity_fit`), so the blend changes the shape, not its placement.
+    """
+    if frames < 2:
+        raise errors.UsageError("--frames must be at least 2, got %d" % frames)
+    XA = np.asarray(A[0], float)
+    XB_on_A, _, _ = correspond(A, B, R)
+    if fit:
+        XB_on_A = similarity_fit(XA, XB_on_A)
+    return [(1 - t) * XA + t * XB_on_A for t in np.linspace(0.0, 1.0, frames)]
+
+
+# -- command line ------------------------------------------------------------------------------------
+
+def load_map(mesh_path, sphere_path=None, say=print, target="original-angles"):
+    """``(X, S, F)`` for a mesh: read an existing sphere (checked against the mesh and certified) or map it."""
+    from .certify import certify
+    from .mesh_io import load_mesh
+
+    if sphere_path is None:
+        from .api import parameterize
+
+        say("mapping %s (%s)" % (mesh_path, target))
+        result = parameterize(str(mesh_path), target=target)
+        return np.asarray(result.input_vertices, float), np.asarray(result.vertices, float), \
+            np.asarray(result.faces, np.int64)
+    X, F = load_mesh(mesh_path)[:2]
+    S, FS = load_mesh(sphere_path)[:2]
+    if len(S) != len(X) or np.shape(FS) != np.shape(F) or not np.array_equal(FS, F):
+        raise errors.UsageError("%s is not a sphere of %s: %d vertices / %d faces against %d / %d, or "
+                                "other faces" % (sphere_path, mesh_path, len(S), len(FS), len(X), len(F)))
+    cert = certify(S, F)
+    if not cert.valid:
+        raise errors.UsageError("%s is not a certified sphere: %s" % (sphere_path, cert.reason))
+    return np.asarray(X, float), np.asarray(S, float), np.asarray(F, np.int64)
+
+
+def _check_folder(path, what):
+    """UsageError, before any work, when ``path``'s folder (or, for a folder, itself) cannot take files."""
+    path = Path(path)
+    folder = path if what == "folder" else (path.parent if str(path.parent) else Path("."))
+    if what == "folder" and path.exists() and not path.is_dir():
+        raise errors.UsageError("cannot write to %s: it is a file, not a folder" % path)
+    if what != "folder" and not folder.is_dir():
+        raise errors.UsageError("cannot write %s: no folder %s" % (path, folder))
+
+
+def _run(prog, parser, argv, body):
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exit_:
+        return int(exit_.code or 0)
+
+    def say(line):
+        if not args.quiet:
+            print("%s: %s" % (prog, line), file=sys.stderr, flush=True)
+    try:
+        return body(args, say)
+    except errors.SphereNLPError as exc:
+        print("%s: error: %s" % (prog, exc), file=sys.stderr)
+        return exc.exit_status
+    except OSError as exc:
+        print("%s: error: %s" % (prog, exc), file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("%s: interrupted; nothing written" % prog, file=sys.stderr)
+        return 130
+
+
+def resample_main(argv=None):
+    """``sphere-nlp resample MESH --icosphere K -o OUT [--sphere S.off]``."""
+    parser = argparse.ArgumentParser(
+        prog="sphere-nlp resample",
+        description="Write MESH's shape on an icosphere's connectivity, read through its sphere map "
+                    "(mapped here, or given with --sphere), and report the Hausdorff distance.")
+    parser.add_argument("mesh", metavar="MESH")
+    parser.add_argument("--icosphere", type=int, default=5, metavar="K",
+                        help="icosphere level: 10*4^K+2 vertices (default 5: 10242)")
+    parser.add_argument("--sphere", metavar="S.off", help="an existing sphere of MESH (same vertices and faces)")
+    parser.add_argument("-o", "--output", required=True, metavar="OUT", help="remeshed shape, .off/.obj/.ply")
+    parser.add_argument("-q", "--quiet", action="store_true")
+
+    def body(args, say):
+        from .mesh_io import check_mesh_path, write_mesh
+
+        check_mesh_path(args.output)
+        _check_folder(args.output, "file")
+        if not 0 <= args.icosphere <= 8:
+            raise errors.UsageError("--icosphere must be between 0 and 8, got %d" % args.icosphere)
+        for path in (args.mesh, args.sphere):
+            if path and not Path(path).is_file():
+                raise errors.UsageError("cannot read %s: no such file" % path)
+        start = time.perf_counter()
+        X, S, F = load_map(args.mesh, args.sphere, say)
+        t_map = time.perf_counter() - start
+        start = time.perf_counter()
+        V, G = resample_icosphere(X, S, F, args.icosphere)
+        t_resample = time.perf_counter() - start
+        write_mesh(args.output, V, G)
+        h, mean = hausdorff((X, F), (V, G))
+        diag = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+        say("wrote %s: %d vertices; map %.2f s, resample %.2f s; Hausdorff %.4g (%.3f%% of the bounding "
+            "box diagonal), mean distance %.3g" % (args.output, len(V), t_map, t_resample, h, 100 * h / diag, mean))
+        return 0
+
+    return _run("sphere-nlp resample", parser, argv, body)
+
+
+def morph_main(argv=None):
+    """``sphere-nlp morph A B --frames N --out DIR``."""
+    parser = argparse.ArgumentParser(
+        prog="sphere-nlp morph",
+        description="Write in-between meshes from A to B on A's connectivity (B resampled onto A's "
+                    "sphere after aligning the spheres), DIR/frame_000.obj..., and DIR/strip.png.")
+    parser.add_argument("a", metavar="A")
+    parser.add_argument("b", metavar="B")
+    parser.add_argument("--frames", type=int, default=30, metavar="N", help="number of frames (default 30)")
+    parser.add_argument("--out", required=True, metavar="DIR")
+    parser.add_argument("--sphere-a", metavar="SA.off", help="an existing sphere of A")
+    parser.add_argument("--sphere-b", metavar="SB.off", help="an existing sphere of B")
+    parser.add_argument("--landmarks", metavar="a:b,...",
+                        help="vertex pairs (A index:B index, 3 or more) to align the spheres; default: "
+                             "the shapes' principal axes")
+    parser.add_argument("--fit", action="store_true",
+                        help="move B onto A by the best rotation, scale and translation before blending")
+    parser.add_argument("-q", "--quiet", action="store_true")
+
+    def body(args, say):
+        from .mesh_io import write_mesh
+
+        if args.frames < 2:
+            raise errors.UsageError("--frames must be at least 2, got %d" % args.frames)
+        _check_folder(args.out, "folder")
+        landmarks = _parse_landmarks(args.landmarks)
+        for path in (args.a, args.b, args.sphere_a, args.sphere_b):
+            if path and not Path(path).is_file():
+                raise errors.UsageError("cannot read %s: no such file" % path)
+        A = load_map(args.a, args.sphere_a, say)
+        B = load_map(args.b, args.sphere_b, say)
+        _check_landmarks(landmarks, A, B)
+        R = align_spheres(A, B, landmarks)
+        frames = morph_frames(A, B, args.frames, R, fit=args.fit)
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        for i, V in enumerate(frames):
+            write_mesh(out / ("frame_%03d.obj" % i), V, A[2])
+        write_strip(out / "strip.png", frames, A[2])
+        say("wrote %d frames and strip.png to %s" % (len(frames), out))
+        return 0
+
+    return _run("sphere-nlp morph", parser, argv, body)
+
+
+def _parse_landmarks(text):
+    if not text:
+        return None
+    try:
+        pairs = [tuple(int(i) for i in pair.split(":")) for pair in text.split(",")]
+    except ValueError:
+        pairs = []
+    if len(pairs) < 3 or any(len(p) != 2 or min(p) < 0 for p in pairs):
+        raise errors.UsageError("--landmarks must be 3 or more pairs a:b of vertex indices, got %r" % text)
+    return pairs
+
+
+def transfer_main(argv=None):
+    """``sphere-nlp transfer A B --values VALUES.npy -o OUT.npy [--kind nearest]``."""
+    parser = argparse.ArgumentParser(
+        prog="sphere-nlp transfer",
+        description="Read per-vertex values of A (.npy, one row per vertex: a scalar field, colours, "
+                    "labels) at every vertex of B through the aligned spheres; write them as .npy.")
+    parser.add_argument("a", metavar="A")
+    parser.add_argument("b", metavar="B")
+    parser.add_argument("--values", required=True, metavar="VALUES.npy", help="A's per-vertex values")
+    parser.add_argument("-o", "--output", required=True, metavar="OUT.npy", help="B's per-vertex values")
+    parser.add_argument("--kind", choices=("linear", "nearest"), default="linear",
+                        help="linear: barycentric (fields, colours; default); nearest: labels")
+    parser.add_argument("--sphere-a", metavar="SA.off", help="an existing sphere of A")
+    parser.add_argument("--sphere-b", metavar="SB.off", help="an existing sphere of B")
+    parser.add_argument("--landmarks", metavar="a:b,...",
+                        help="vertex pairs (A index:B index, 3 or more) to align the spheres; default: "
+                             "the shapes' principal axes")
+    parser.add_argument("-q", "--quiet", action="store_true")
+
+    def body(args, say):
+        from .mesh_io import atomic_output
+
+        if not args.output.endswith(".npy"):
+            raise errors.UsageError("cannot write %s: output must end in .npy" % args.output)
+        _check_folder(args.output, "file")
+        landmarks = _parse_landmarks(args.landmarks)
+        for path in (args.a, args.b, args.values, args.sphere_a, args.sphere_b):
+            if path and not Path(path).is_file():
+                raise errors.UsageError("cannot read %s: no such file" % path)
+        try:
+            values = np.load(args.values, allow_pickle=False)
+        except ValueError as exc:
+            raise errors.UsageError("cannot read %s: %s" % (args.values, exc)) from None
+        A = load_map(args.a, args.sphere_a, say)
+        if len(values) != len(A[0]):
+            raise errors.UsageError("%s has %d rows, A has %d vertices" % (args.values, len(values), len(A[0])))
+        B = load_map(args.b, args.sphere_b, say)
+        _check_landmarks(landmarks, A, B)
+        result = transfer(values, A, B, align_spheres(A, B, landmarks), kind=args.kind)
+        with atomic_output(args.output, "wb") as handle:
+            np.save(handle, result)
+        say("wrote %s: %s values for %d vertices of %s" % (args.output, args.kind, len(result), args.b))
+        return 0
+
+    return _run("sphere-nlp transfer", parser, argv, body)
+
+
+def _check_landmarks(landmarks, A, B):
+    if landmarks is not None and (max(p[0] for p in landmarks) >= len(A[0])
+                                  or max(p[1] for p in landmarks) >= len(B[0])):
+        raise errors.UsageError("--landmarks: a vertex index is out of range")
+
+
+def write_strip(path, frames, faces, count=6, view=None):
+    """A row of ``count`` frames (evenly chosen), shaded, as a PNG written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .mesh_io import atomic_output
+
+    pick = np.unique(np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int))
+    fig = plt.figure(figsize=(2.2 * len(pick), 2.4), dpi=80)
+    for k, i in enumerate(pick):
+        ax = fig.add_subplot(1, len(pick), k + 1, projection="3d")
+        draw_mesh(ax, frames[i], faces)
+        if view is not None:
+            ax.view_init(*view)
+        ax.set_title("frame %d" % i, fontsize=8)
+    fig.tight_layout()
+    with atomic_output(path, "wb") as handle:
+        fig.savefig(handle, format="png")
+    plt.close(fig)
+
+
+def draw_mesh(ax, V, F, colours=None):
+    """Flat-shaded mesh on a 3d axis, equal aspect, no axes (colours: per-face RGB, optional)."""
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    V = np.asarray(V, float)
+    T = V[F]
+    n = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-300
+    light = np.clip(n @ np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]), 0, 1)
+    base = np.array([0.75, 0.78, 0.85]) if colours is None else np.asarray(colours, float)
+    shade = (0.25 + 0.75 * light)[:, None] * (base if base.ndim == 2 else base[None, :])
+    ax.add_collection3d(Poly3DCollection(T, facecolors=np.clip(shade, 0, 1), linewidths=0))
+    c, r = (V.max(axis=0) + V.min(axis=0)) / 2, (V.max(axis=0) - V.min(axis=0)).max() / 2
+    ax.set_xlim(c[0] - r, c[0] + r)
+    ax.set_ylim(c[1] - r, c[1] + r)
+    ax.set_zlim(c[2] - r, c[2] + r)
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_axis_off()

@@ -1,0 +1,214 @@
+"""Point location, resampling, alignment, transfer and morphing through sphere maps (closed forms)."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sphere_nlp.api import parameterize
+from sphere_nlp.certify import certify
+from sphere_nlp.cli import main
+from sphere_nlp.locate import SphereLocator
+from sphere_nlp.mesh_io import load_mesh, write_mesh
+from sphere_nlp.resample import (align_spheres, correspond, geometry_image, grid_directions, hausdorff,
+                                 morph_frames, resample_at, resample_icosphere, transfer)
+from sphere_nlp.shapes import icosphere
+from tests.meshgen import ellipsoid
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+
+
+def rotation(axis, angle):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def bumpy(S):
+    """An asymmetric shape over the sphere: no rotation maps it onto itself."""
+    x, y, z = S.T
+    return np.c_[x + 0.3 * y ** 2, 1.6 * y + 0.25 * z ** 2, 0.7 * z + 0.2 * x ** 2 + 0.1 * x * y]
+
+
+def perturbed_sphere(level=3, seed=0):
+    """A certified sphere mesh with irregular triangles (icosphere vertices moved a little)."""
+    S, F = icosphere(level)
+    S = S + 0.16 * 2.0 ** -level * np.random.default_rng(seed).normal(size=S.shape)
+    S /= np.linalg.norm(S, axis=1, keepdims=True)
+    assert certify(S, F).valid
+    return S, F
+
+
+def test_locate_every_query_barycentrics_reconstruct():
+    S, F = perturbed_sphere(3)
+    rng = np.random.default_rng(1)
+    Q = rng.normal(size=(5000, 3))
+    Q = np.vstack([Q / np.linalg.norm(Q, axis=1, keepdims=True), S[:50]])   # vertices: on edges
+    face, bary = SphereLocator(S, F).locate(Q)
+    assert (face >= 0).all() and (face < len(F)).all()
+    assert (bary >= 0).all() and (bary <= 1).all() and np.allclose(bary.sum(axis=1), 1, atol=1e-12)
+    P = np.einsum("ij,ijk->ik", bary, S[F[face]])
+    assert np.abs(P / np.linalg.norm(P, axis=1, keepdims=True) - Q).max() < 1e-12
+
+
+def test_locate_fallback_finds_queries_with_few_candidates():
+    S, F = perturbed_sphere(2)
+    Q = np.random.default_rng(2).normal(size=(300, 3))
+    face, bary = SphereLocator(S, F).locate(Q, k=(1,))        # most need the all-triangle fallback
+    P = np.einsum("ij,ijk->ik", bary, S[F[face]])
+    Q = Q / np.linalg.norm(Q, axis=1, keepdims=True)
+    assert np.abs(P / np.linalg.norm(P, axis=1, keepdims=True) - Q).max() < 1e-12
+
+
+def test_resampling_a_sphere_returns_the_sphere():
+    S, F = perturbed_sphere(4)
+    V, G = resample_icosphere(S, S, F, 3)
+    r = np.linalg.norm(V, axis=1)
+    # Points on flat triangles: inside by at most the chord sag of edges ~ 0.1 rad, 1 - cos(0.05).
+    assert r.max() <= 1 + 1e-12 and r.min() > 1 - 2e-3
+    assert np.abs(V / r[:, None] - icosphere(3)[0]).max() < 1e-12
+    h, _ = hausdorff((S, F), (V, G), samples=20000)
+    assert h < 0.05
+
+
+def test_resampling_cylinder_at_its_sphere_vertices_returns_its_vertices():
+    # The shipped cylinder's own map, read at its own sphere vertices: the input, to round-off.
+    result = parameterize(str(MODELS / "cylinder.off"))
+    X, S = result.input_vertices, result.vertices
+    assert np.abs(resample_at(X, S, result.faces, S) - X).max() < 1e-9
+
+
+def test_geometry_image_grids_are_unit_and_cover():
+    for layout, shape in (("equirectangular", (8, 16, 3)), ("octahedral", (16, 16, 3))):
+        D = grid_directions(8 if layout == "equirectangular" else 16, layout)
+        assert D.shape == shape and np.allclose(np.linalg.norm(D, axis=-1), 1)
+    S, F = icosphere(3)
+    image = geometry_image(3 * S, S, F, 16, "octahedral")
+    assert image.shape == (16, 16, 3) and np.abs(np.linalg.norm(image, axis=-1) - 3).max() < 0.02
+
+
+@pytest.mark.parametrize("use_landmarks", [True, False])
+def test_correspondence_with_rotated_copy_is_the_rotation(use_landmarks):
+    S, F = perturbed_sphere(3)
+    X = bumpy(S)
+    Q = rotation([1, 2, 3], 0.9)                  # the shape's rotation
+    R0 = rotation([-2, 1, 0.5], 2.1)              # B's sphere: an arbitrary orientation of A's
+    XB = X @ Q.T + [0.5, -1, 2]
+    A, B = (X, S, F), (XB, S @ R0.T, F)
+    landmarks = [(i, i) for i in (0, 7, 30, 100)] if use_landmarks else None
+    R = align_spheres(A, B, landmarks)
+    assert np.abs(R - R0).max() < 1e-9
+    Y, _, _ = correspond(A, B, R)
+    assert np.abs(Y - XB).max() < 1e-9
+
+
+def test_transferred_linear_field_stays_linear():
+    SA, FA = icosphere(4)
+    SB, FB = perturbed_sphere(2, seed=3)
+    XA, XB = bumpy(SA), bumpy(SB)
+    R0 = rotation([0, 1, 1], 0.7)
+    A, B = (XA, SA, FA), (XB @ rotation([1, 0, 0], 1.0).T, SB @ R0.T, FB)
+    a = np.array([0.3, -1.2, 0.5])
+    values = XA @ a + 2.0
+    got = transfer(values, A, B, R0)
+    assert np.abs(got - (XB @ a + 2.0)).max() < 0.02 * np.ptp(values)
+    colours = np.c_[values, 2 * values]
+    assert np.allclose(transfer(colours, A, B, R0), np.c_[got, 2 * got])
+    labels = (XA[:, 0] > 0).astype(int)
+    got_labels = transfer(labels, A, B, R0, kind="nearest")
+    far = np.abs(XB[:, 0]) > 0.2
+    assert got_labels.dtype == labels.dtype and np.array_equal(got_labels[far], (XB[far, 0] > 0).astype(int))
+
+
+def test_morph_ends_are_the_resampled_shapes():
+    S, F = perturbed_sphere(3)
+    XA = ellipsoid(3)[0]                             # on icosphere(3)'s vertices, i.e. over S's order
+    SA, FA = icosphere(3)
+    A = (XA, SA, FA)
+    B = (bumpy(S), S, F)
+    frames = morph_frames(A, B, 5, np.eye(3))
+    assert len(frames) == 5 and np.array_equal(frames[0], XA)
+    Y, _, _ = correspond(A, B, np.eye(3))
+    assert np.allclose(frames[-1], Y) and np.allclose(frames[2], (XA + Y) / 2)
+
+
+def test_cli_resample_and_morph(tmp_path):
+    S, F = icosphere(2)
+    X = bumpy(S)
+    write_mesh(tmp_path / "a.off", X, F)
+    write_mesh(tmp_path / "a.sphere.off", S, F)
+    out = tmp_path / "r.obj"
+    assert main(["resample", str(tmp_path / "a.off"), "--sphere", str(tmp_path / "a.sphere.off"),
+                 "--icosphere", "2", "-o", str(out), "-q"]) == 0
+    V, G = load_mesh(out)
+    assert np.abs(V - X).max() < 1e-9                # same sphere vertices: the input itself
+    assert main(["morph", str(tmp_path / "a.off"), str(tmp_path / "a.off"), "--sphere-a",
+                 str(tmp_path / "a.sphere.off"), "--sphere-b", str(tmp_path / "a.sphere.off"),
+                 "--frames", "3", "--out", str(tmp_path / "m"), "-q"]) == 0
+    assert sorted(p.name for p in (tmp_path / "m").iterdir()) == [
+        "frame_000.obj", "frame_001.obj", "frame_002.obj", "strip.png"]
+
+
+def test_cli_bad_usage_exits_2_before_work(tmp_path, capsys):
+    S, F = icosphere(1)
+    write_mesh(tmp_path / "a.off", S, F)
+    write_mesh(tmp_path / "wrong.off", *icosphere(2))
+    assert main(["resample", str(tmp_path / "a.off"), "-o", str(tmp_path / "r.xyz")]) == 2
+    assert main(["resample", str(tmp_path / "a.off"), "--sphere", str(tmp_path / "wrong.off"),
+                 "-o", str(tmp_path / "r.off")]) == 2
+    assert main(["morph", str(tmp_path / "a.off"), str(tmp_path / "a.off"), "--frames", "1",
+                 "--out", str(tmp_path / "m")]) == 2
+    assert main(["morph", str(tmp_path / "a.off"), str(tmp_path / "a.off"), "--landmarks", "1:2",
+                 "--out", str(tmp_path / "m")]) == 2
+    assert main(["resample", str(tmp_path / "a.off"), "-o", str(tmp_path / "no" / "r.off")]) == 2
+    assert main(["morph", str(tmp_path / "a.off"), str(tmp_path / "a.off"), "--out", str(tmp_path / "a.off")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 6 and all(line.startswith("sphere-nlp ") and "error:" in line for line in err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.off", "wrong.off"]
+
+
+def test_cli_transfer_labels_and_fields(tmp_path):
+    S, F = icosphere(2)
+    X = bumpy(S)
+    Q = rotation([0, 0, 1], 1.3)
+    write_mesh(tmp_path / "a.off", X, F)
+    write_mesh(tmp_path / "a.sphere.off", S, F)
+    write_mesh(tmp_path / "b.off", X @ Q.T, F)
+    write_mesh(tmp_path / "b.sphere.off", S @ rotation([1, 1, 0], 0.4).T, F)
+    labels = np.arange(len(X)) % 7
+    np.save(tmp_path / "labels.npy", labels)
+    common = [str(tmp_path / "a.off"), str(tmp_path / "b.off"), "--sphere-a", str(tmp_path / "a.sphere.off"),
+              "--sphere-b", str(tmp_path / "b.sphere.off"), "-q"]
+    assert main(["transfer", *common, "--values", str(tmp_path / "labels.npy"), "--kind", "nearest",
+                 "-o", str(tmp_path / "out.npy")]) == 0
+    assert np.array_equal(np.load(tmp_path / "out.npy"), labels)     # a rotated copy: vertex to vertex
+    assert main(["transfer", *common, "--values", str(tmp_path / "labels.npy"), "-o",
+                 str(tmp_path / "out.txt")]) == 2
+    np.save(tmp_path / "short.npy", labels[:5])
+    assert main(["transfer", *common, "--values", str(tmp_path / "short.npy"), "-o",
+                 str(tmp_path / "out2.npy")]) == 2
+    assert not (tmp_path / "out2.npy").exists()
+
+
+def test_morph_fit_moves_b_onto_a():
+    S, F = icosphere(2)
+    X = bumpy(S)
+    Q = rotation([1, -1, 2], 0.8)
+    frames = morph_frames((X, S, F), (2.5 * X @ Q.T + [1, 2, 3], S, F), 3, np.eye(3), fit=True)
+    assert all(np.abs(frame - X).max() < 1e-9 for frame in frames)   # the same shape: nothing moves
+
+
+def test_spharm_recovers_a_degree_two_shape():
+    from sphere_nlp.spharm import real_harmonics, spharm_coefficients, spharm_reconstruct
+
+    S, F = icosphere(4)
+    X = bumpy(S)                                   # every coordinate a polynomial of degree <= 2 in p
+    c2 = spharm_coefficients(X, S, F, 2)
+    c4 = spharm_coefficients(X, S, F, 4)
+    P = icosphere(3)[0]
+    assert np.abs(spharm_reconstruct(c2, P) - bumpy(P)).max() < 5e-3   # interpolation error only
+    assert np.abs(c4[9:]).max() < 5e-3             # nothing above degree 2
+    assert np.allclose(c4[:9], c2, atol=5e-3)
+    # Degree 1 of x = p_x alone: Y_11 = sqrt(3 / 4 pi) p_x.
+    c = spharm_coefficients(S, S, F, 1)
+    assert abs(c[3, 0] - np.sqrt(4 * np.pi / 3)) < 5e-3 and abs(c[0, 0]) < 1e-3
