@@ -382,6 +382,22 @@ def _as_arrays(mesh):
     return vertices, faces
 
 
+def _is_finite_number(value):
+    """A real (not bool, not complex) finite number."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
+        and bool(np.isfinite(value))
+
+
+def _check_limits(max_iter, max_time):
+    """UsageError unless the limits are absent or positive: IPOPT would otherwise reject them only
+    after the mesh was read and the NLP built, with an option dump instead of a message."""
+    if max_iter is not None and not (isinstance(max_iter, (int, np.integer)) and not isinstance(max_iter, bool)
+                                     and max_iter > 0):
+        raise errors.UsageError("max_iter must be a positive whole number, not %r" % (max_iter,))
+    if max_time is not None and not (_is_finite_number(max_time) and max_time > 0):
+        raise errors.UsageError("max_time must be a positive finite number of seconds, not %r" % (max_time,))
+
+
 def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weight=None,
                  target_angles=None, target_excess=None, formulation=DEFAULT_FORMULATION, max_iter=None,
                  max_time=None, on_limit="fail", ipopt_options=None, progress=None, on_stage=None, start=None,
@@ -474,6 +490,10 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
                                 % (formulation, ", ".join(FORMULATIONS)))
     if on_limit not in ON_LIMIT:
         raise errors.UsageError("unknown on_limit %r; choose one of %s" % (on_limit, ", ".join(ON_LIMIT)))
+    _check_limits(max_iter, max_time)
+    for name, weight in (("angle_weight", angle_weight), ("area_weight", area_weight)):
+        if weight is not None and not _is_finite_number(weight):
+            raise errors.UsageError("%s must be a finite number, not %r" % (name, weight))
     timings = {}
     clock = time.perf_counter()
     run_started = clock

@@ -194,16 +194,33 @@ def _texture_beside(obj_path, texture):
     return Path(obj_path).parent / texture if texture.parent == Path(".") else texture
 
 
+def _check_distinct_outputs(input_path, output, args):
+    """UsageError if an output would replace the input or another output of the same run."""
+    named = [("-o", output), ("--png", args.png), ("--textured-input", args.textured_input),
+             ("--report", args.report), ("--save-solution", args.save_solution),
+             ("--texture", _texture_beside(output, args.texture) if output.suffix.lower() == ".obj" else None)]
+    seen = {Path(input_path).resolve(): "the input"}
+    for option, path in named:
+        if not path:
+            continue
+        resolved = Path(path).resolve()
+        if resolved in seen:
+            raise errors.UsageError("cannot write %s (%s): it is %s" % (path, option, seen[resolved]))
+        seen[resolved] = "also the %s output" % option
+
+
 def run(args, progress):
     from .api import parameterize, solve_failure_message
 
     input_path = Path(args.input)
-    output = Path(args.output) if args.output else Path(input_path.name.split(".")[0] + ".sphere.off")
+    # The stem keeps inner dots (knight.v1.off -> knight.v1.sphere.off), so versions do not collide.
+    output = Path(args.output) if args.output else Path(input_path.stem + ".sphere.off")
     # Every output name is checked before the (possibly long) solve.
     check_mesh_path(output)
     _check_suffix(args.png, ".png", "a picture")
     _check_suffix(args.textured_input, ".obj", "a textured mesh")
     _check_suffix(args.texture, ".png", "a texture")
+    _check_distinct_outputs(input_path, output, args)
     if args.texture and output.suffix.lower() != ".obj" and not args.textured_input:
         raise errors.UsageError("--texture needs an OBJ output (-o X.obj or --textured-input X.obj)")
 

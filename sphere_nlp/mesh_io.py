@@ -105,6 +105,8 @@ def _text_lines(path, kind):
     data = path.read_bytes()
     if b"\0" in data:
         raise errors.UnreadableMeshError("cannot read %s: not a text %s file (binary data)" % (path, kind))
+    # A UTF-8 byte-order mark is not part of the first line: left in, it hid the first "v" or "OFF".
+    data = data[3:] if data.startswith(b"\xef\xbb\xbf") else data
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:
