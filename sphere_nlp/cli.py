@@ -282,6 +282,10 @@ def main(argv=None):
         from .resample import transfer_main
 
         return transfer_main(argv[1:])
+    if argv[:1] == ["batch"]:          # `python -m sphere_nlp batch INPUT... --out DIR`
+        from .batch import main as batch_main
+
+        return batch_main(argv[1:])
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

@@ -1,0 +1,1020 @@
+"""Map a whole dataset: ``sphere-nlp batch INPUT... --out DIR`` and :func:`map_meshes`.
+
+Every mesh goes through :func:`sphere_nlp.parameterize` and the usual writers, with the same options.
+The output folder holds, per mesh ``NAME`` (the input's file name without its extension, with its
+parent folders where two inputs have the same file name, e.g. ``sub-01/lh``):
+
+- ``NAME.sphere.off`` (or ``.obj`` / ``.ply`` with ``--format``), only for a certified sphere;
+- ``NAME.png`` with ``--png``, only for a certified sphere;
+- ``NAME.report.json``: :meth:`~sphere_nlp.api.SphericalParameterization.report` with a ``batch``
+  section (input, options, summary row), written last and also for a failed mesh;
+
+and for the batch ``summary.csv`` and ``summary.md``: one row per mesh with its vertices, status,
+exit reason, time, iterations, distortion figures and peak memory. Every file is written atomically
+(temporary file + rename), so an interrupted batch leaves no partial file; the summary is rewritten
+as meshes finish.
+
+A bad or failing mesh is a row (``bad input``, ``solve failed``, ``certificate failed`` or ``error``)
+with its one-line reason, and the batch goes on. Re-running the same command skips the meshes whose
+certified sphere and report are there (same input file, same target, weights and formulation; an
+unconverged, projected sphere only under the same limits), unless ``--force``.
+
+Exit status: 0 every mesh has a certified sphere; 1 some mesh failed; 2 bad usage (no input, an
+input that does not exist, two inputs with the same output name, bad options), found before anything
+runs; 130 interrupted.
+
+Parallelism: ``--jobs N`` runs up to N meshes at a time in worker processes (one IPOPT each, BLAS
+threads pinned to 1); the default is one per core, and a run starts only when its memory bound
+(:func:`memory_bound_mb`) fits beside the runs already going, within the memory available when the
+batch began. ``--scheduler ADDRESS`` sends the meshes as Dask futures to an existing
+``dask.distributed`` cluster whose workers read the inputs and write the outputs on a shared path.
+"""
+
+import argparse
+import csv
+import glob
+import io
+import json
+import os
+import re
+import signal
+import socket
+import sys
+import threading
+import time
+import uuid
+from collections import deque
+from contextlib import contextmanager
+from pathlib import Path
+
+from . import errors
+from .mesh_io import atomic_output, write_json
+from .nlp import DEFAULT_FORMULATION, FORMULATIONS
+from .solve import ON_LIMIT
+from .targets import MODES
+
+# What a folder given as input contributes: the mesh files directly inside it.
+INPUT_SUFFIXES = (".off", ".obj", ".ply", ".stl")
+OUTPUT_FORMATS = ("off", "obj", "ply")
+
+# Peak resident memory of one run, MB: BASE_MB + per-vertex slope, by target family and formulation.
+# Fitted as an upper bound to the per-process peak RSS of benchmarks/results.json (each run in its own
+# process, 502 to 172,966 vertices): angle modes <= 120 + 0.0200 V, area modes <= 120 + 0.0334 V
+# (log-chord); the faithful formulation measured 0.085 MB a vertex (ellipsoid, 10,242 vertices,
+# original-angles). MEMORY_MARGIN covers meshes unlike those measured.
+BASE_MB = 120.0
+MB_PER_VERTEX = {("angle", "log-chord"): 0.021, ("area", "log-chord"): 0.035,
+                 ("angle", "other"): 0.09, ("area", "other"): 0.15}
+MEMORY_MARGIN = 1.25
+# Share of the memory available at the start that a local batch may plan to use.
+MEMORY_BUDGET_SHARE = 0.8
+
+# A run that breaks its worker process (killed for memory, a crash) is tried once more in a new one.
+WORKER_ATTEMPTS = 2
+
+SUMMARY_FIELDS = ("mesh", "input", "vertices", "status", "reason", "time_s", "iterations",
+                  "mean_abs_angle_diff_deg", "mean_abs_log_area", "qc_mean", "area_cv", "peak_rss_mb",
+                  "output", "resumed")
+# The columns of summary.md: (row key, header, format).
+TABLE_COLUMNS = (("mesh", "mesh", "%s"), ("vertices", "vertices", "%d"), ("status", "status", "%s"),
+                 ("reason", "exit reason", "%s"), ("time_s", "time (s)", "%.2f"),
+                 ("iterations", "iterations", "%d"), ("mean_abs_angle_diff_deg", "mean abs Δangle (°)", "%.2f"),
+                 ("mean_abs_log_area", "mean abs log area ratio", "%.3f"), ("qc_mean", "QC mean", "%.3f"),
+                 ("peak_rss_mb", "peak RSS (MB)", "%.0f"), ("resumed", "resumed", "%s"))
+CERTIFIED = ("certified", "certified, not optimal")
+
+# The options that decide a sphere: a finished one made with other values is not reused.
+RESULT_OPTIONS = ("target", "angle_weight", "area_weight", "formulation")
+LIMIT_OPTIONS = ("max_iter", "max_time", "on_limit")
+
+# One IPOPT at a time in a process, even on a Dask worker that runs several threads.
+_SOLVE_LOCK = threading.Lock()
+
+
+# ----------------------------------------------------------------------------------------- inputs
+
+def expand_inputs(inputs, exclude=None):
+    """Mesh paths from files, folders (their mesh files), glob patterns and ``@list.txt`` files.
+
+    A list file holds one input per line (blank lines and ``#`` comments skipped), relative to the list
+    file's folder unless absolute; its lines may be files, folders or patterns too. Paths are returned
+    absolute (symbolic links not resolved), in the order given, each once. Files inside ``exclude`` (the
+    output folder) are left out of folders and patterns.
+
+    Raises UsageError naming the first input that does not exist, a pattern or folder that matches no
+    mesh, or an unreadable list file.
+
+    Examples
+    --------
+    >>> import tempfile, os
+    >>> d = tempfile.mkdtemp()
+    >>> for name in ("b.off", "a.obj", "notes.txt"):
+    ...     open(os.path.join(d, name), "w").close()
+    >>> [p.name for p in expand_inputs([d])]
+    ['a.obj', 'b.off']
+    >>> [p.name for p in expand_inputs([os.path.join(d, "*.off"), os.path.join(d, "b.off")])]
+    ['b.off']
+
+    Strings may be patterns or ``@list`` files; ``Path`` objects are taken as they are.
+    """
+    exclude = Path(os.path.abspath(exclude)) if exclude else None
+
+    def excluded(path):
+        return exclude is not None and (path == exclude or exclude in path.parents)
+
+    found = []
+
+    def add(item, base, from_list=None):
+        where = " (in %s)" % from_list if from_list else ""
+        text = str(item)
+        if isinstance(item, str) and text.startswith("@") and from_list is None:
+            _read_list(Path(text[1:]))
+            return
+        path = Path(os.path.abspath(os.path.join(base, os.path.expanduser(text))))
+        # Path objects are taken literally; strings with *, ? or [ are patterns.
+        if isinstance(item, str) and glob.has_magic(text):
+            matches = sorted(Path(os.path.abspath(m)) for m in glob.glob(str(path), recursive=True))
+            matches = [m for m in matches if m.is_file() and m.suffix.lower() in INPUT_SUFFIXES
+                       and not excluded(m)]
+            if not matches:
+                raise errors.UsageError("no mesh file matches %s%s" % (text, where))
+            found.extend(matches)
+        elif path.is_dir():
+            matches = sorted(m for m in path.iterdir()
+                             if m.is_file() and m.suffix.lower() in INPUT_SUFFIXES and not excluded(m))
+            if not matches:
+                raise errors.UsageError("no mesh file (%s) in the folder %s%s"
+                                        % (", ".join(INPUT_SUFFIXES), text, where))
+            found.extend(matches)
+        elif path.exists():
+            found.append(path)
+        else:
+            raise errors.UsageError("no such file or folder: %s%s" % (text, where))
+
+    def _read_list(list_path):
+        try:
+            lines = list_path.read_text().splitlines()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise errors.UsageError("cannot read the list file %s: %s"
+                                    % (list_path, getattr(exc, "strerror", None) or exc)) from None
+        entries = [line.strip() for line in lines]
+        entries = [e for e in entries if e and not e.startswith("#")]
+        if not entries:
+            raise errors.UsageError("the list file %s names no input" % list_path)
+        for entry in entries:
+            add(entry, list_path.parent, from_list=list_path)
+
+    for item in inputs:
+        add(item, os.getcwd())
+    unique, seen = [], set()
+    for path in found:
+        if path not in seen:
+            seen.add(path)
+            unique.append(path)
+    return unique
+
+
+def output_names(paths):
+    """Each input's output name: its file name without extension, with as many parent folders as it
+    takes to tell it from the other inputs' (``sub-01/lh`` and ``sub-02/lh``).
+
+    Raises UsageError when two inputs would get the same name (``a.off`` and ``a.obj`` side by side).
+
+    Examples
+    --------
+    >>> output_names([Path("/d/sub-01/lh.off"), Path("/d/sub-02/lh.off"), Path("/e/bunny.off")])
+    ['sub-01/lh', 'sub-02/lh', 'bunny']
+    """
+    stems = [path.with_suffix("").parts[1:] for path in paths]    # without the root
+    depth = [1] * len(paths)
+    while True:
+        names = ["/".join(stem[-d:]) for stem, d in zip(stems, depth)]
+        holders = {}
+        for i, name in enumerate(names):
+            holders.setdefault(name, []).append(i)
+        clashes = [group for group in holders.values() if len(group) > 1]
+        if not clashes:
+            return names
+        for group in clashes:
+            if all(depth[i] >= len(stems[i]) for i in group):
+                raise errors.UsageError("%s and %s would write the same outputs (%s.*); give only one, or "
+                                        "rename one" % (paths[group[0]], paths[group[1]], paths[group[0]].stem))
+            for i in group:
+                depth[i] = min(depth[i] + 1, len(stems[i]))
+
+
+def count_vertices(path):
+    """The number of vertices a mesh file declares (OFF, PLY headers; OBJ ``v`` lines), without parsing it.
+
+    Returns None when it cannot tell (other formats, an unreadable file); only the memory bound uses it.
+    """
+    try:
+        suffix = path.suffix.lower()
+        if suffix == ".obj":
+            with open(path, "rb") as handle:
+                data = handle.read()
+            return data.count(b"\nv ") + data.startswith(b"v ")
+        with open(path, "rb") as handle:
+            head = handle.read(4096).decode("ascii", "replace")
+        if suffix == ".off":
+            words = re.sub(r"#[^\n]*", "", head).split()
+            if words and words[0].upper().endswith("OFF"):
+                return int(words[1])
+        if suffix == ".ply":
+            match = re.search(r"element\s+vertex\s+(\d+)", head)
+            if match:
+                return int(match.group(1))
+        if suffix == ".stl":
+            return max(path.stat().st_size // 100, 4)      # ~50 bytes a face, two faces a vertex
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def memory_bound_mb(vertices, target="original-angles", formulation=DEFAULT_FORMULATION):
+    """Upper bound on one run's peak resident memory, MB (see :data:`MB_PER_VERTEX`).
+
+    Examples
+    --------
+    >>> round(memory_bound_mb(50000, "equal-areas"))
+    2338
+    >>> memory_bound_mb(500) < memory_bound_mb(500, "original-areas") < memory_bound_mb(500, formulation="faithful")
+    True
+    """
+    family = "area" if target.endswith("areas") else "angle"
+    kind = "log-chord" if formulation == "log-chord" else "other"
+    return MEMORY_MARGIN * (BASE_MB + MB_PER_VERTEX[family, kind] * (vertices or 0))
+
+
+def available_memory_mb():
+    """Memory available for new processes, MB: the kernel's MemAvailable within any cgroup limit."""
+    available = None
+    try:
+        with open("/proc/meminfo") as handle:
+            for line in handle:
+                if line.startswith("MemAvailable:"):
+                    available = int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    if available is None:
+        try:
+            available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+        except (ValueError, OSError, AttributeError):
+            return float("inf")
+    try:                                                   # a container's limit (cgroup v2)
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            used = int(Path("/sys/fs/cgroup/memory.current").read_text())
+            available = min(available, (int(limit) - used) / 2 ** 20)
+    except (OSError, ValueError):
+        pass
+    return available
+
+
+def usable_cores():
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
+# ------------------------------------------------------------------------------------ one mesh
+
+def _reset_peak_memory():
+    """Restart this process's peak-RSS count (Linux), so a worker's peak is that of its current mesh."""
+    try:
+        with open("/proc/self/clear_refs", "w") as handle:
+            handle.write("5")
+    except OSError:
+        pass
+
+
+def _file_stamp(path):
+    stat = os.stat(path)
+    return {"input_size": stat.st_size, "input_mtime_ns": stat.st_mtime_ns}
+
+
+def _remove(paths):
+    for path in paths:
+        try:
+            os.unlink(path)
+        except FileNotFoundError:
+            pass
+
+
+def _row_from_result(task, result, status, reason, elapsed):
+    from .api import peak_rss_mb
+
+    distortion = result.distortion() if result.success else {}
+    return {"mesh": task["name"], "input": task["input"], "vertices": int(len(result.vertices)),
+            "status": status, "reason": reason, "time_s": round(elapsed, 3),
+            "iterations": int(result.iterations),
+            "mean_abs_angle_diff_deg": distortion.get("mean_abs_angle_diff_deg"),
+            "mean_abs_log_area": distortion.get("mean_abs_log_area"),
+            "qc_mean": distortion.get("qc_mean"), "area_cv": distortion.get("area_cv"),
+            "peak_rss_mb": round(peak_rss_mb(), 1),
+            "output": task["outputs"]["sphere"] if result.success else None, "resumed": False}
+
+
+def failure_row(task, status, reason, elapsed=None, vertices=None):
+    """A summary row for a mesh that produced no sphere."""
+    row = dict.fromkeys(SUMMARY_FIELDS)
+    row.update(mesh=task["name"], input=task["input"], vertices=vertices, status=status, reason=reason,
+               time_s=None if elapsed is None else round(elapsed, 3), resumed=False)
+    return row
+
+
+def map_one(task):
+    """Map one mesh of a batch and write its outputs; its summary row (runs in a worker).
+
+    ``task`` is a plain dict made by :func:`plan` (input, output names, options). Input errors, solve
+    and certificate failures and running out of memory become rows; anything else (a bug, a file
+    system error) is raised, for the caller (or Dask's retries) to deal with.
+    """
+    with _SOLVE_LOCK:
+        return _map_one(task)
+
+
+def _map_one(task):
+    from .api import parameterize, solve_failure_message
+
+    out = Path(task["out_dir"])
+    outputs = {kind: out / name for kind, name in task["outputs"].items()}
+    outputs["report"].parent.mkdir(parents=True, exist_ok=True)
+    options = task["options"]
+    stale = [outputs["sphere"]] + ([outputs["png"]] if "png" in outputs else [])
+    batch_info = {"input": task["input"], "options": options, "outputs": task["outputs"],
+                  "worker": "%s:%d" % (socket.gethostname(), os.getpid())}
+    _reset_peak_memory()
+    clock = time.perf_counter()
+    try:
+        batch_info.update(_file_stamp(task["input"]))
+        result = parameterize(task["input"], target=options["target"], angle_weight=options["angle_weight"],
+                              area_weight=options["area_weight"], formulation=options["formulation"],
+                              max_iter=options["max_iter"], max_time=options["max_time"],
+                              on_limit=options["on_limit"], check=False)
+    except (errors.MeshInputError, MemoryError, OSError) as exc:
+        if isinstance(exc, errors.MeshInputError):
+            status, reason = "bad input", str(exc)
+        elif isinstance(exc, MemoryError):
+            status, reason = "error", "out of memory"
+        else:
+            status, reason = "bad input", "cannot read %s: %s" % (task["input"], exc.strerror or exc)
+        row = failure_row(task, status, reason, time.perf_counter() - clock)
+        _remove(stale)
+        write_json(outputs["report"], {"success": False, "status": status, "reason": reason,
+                                       "batch": {**batch_info, "summary": row}})
+        return row
+    complete = False
+    try:
+        if result.success:
+            result.write(outputs["sphere"])
+            if "png" in outputs:
+                result.write_png(outputs["png"], measure=options["png_measure"])
+            if result.converged:
+                status, reason = "certified", result.status
+            else:
+                status = "certified, not optimal"
+                reason = "%s; last iterate projected onto the constraints" % result.status
+        else:
+            _remove(stale)
+            if not result.solved:
+                status, reason = "solve failed", solve_failure_message(result.status, result.iterations)
+            else:
+                status = "certificate failed"
+                reason = "the sphere failed its certificate: %s" % result.certificate.reason
+        row = _row_from_result(task, result, status, reason, time.perf_counter() - clock)
+        report = result.report()
+        report["batch"] = {**batch_info, "summary": row}
+        write_json(outputs["report"], report)     # last: a report beside a sphere marks it done
+        complete = True
+    finally:
+        if not complete:
+            _remove(stale)        # interrupted between files: none of this mesh's outputs, not some
+    return row
+
+
+def finished_row(task):
+    """The summary row of a mesh done by an earlier run with compatible options, or None."""
+    out = Path(task["out_dir"])
+    try:
+        report = json.loads((out / task["outputs"]["report"]).read_text())
+        info = report["batch"]
+        row = dict(info["summary"])
+        if not report.get("success") or row.get("status") not in CERTIFIED:
+            return None
+        if info.get("input") != task["input"] or {k: info.get(k) for k in ("input_size", "input_mtime_ns")} \
+                != _file_stamp(task["input"]):
+            return None
+        old, new = info["options"], task["options"]
+        if any(old.get(k) != new[k] for k in RESULT_OPTIONS):
+            return None
+        if not report.get("converged") and any(old.get(k) != new[k] for k in LIMIT_OPTIONS):
+            return None
+        if not all((out / name).is_file() for name in task["outputs"].values()):
+            return None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    row["resumed"] = True
+    return row
+
+
+# ------------------------------------------------------------------------------------ the batch
+
+def plan(paths, out_dir, options, png=False, output_format="off"):
+    """The tasks of a batch: one plain dict per mesh (input, output names, options, memory bound)."""
+    paths = [Path(os.path.abspath(p)) for p in paths]
+    tasks = []
+    for path, name in zip(paths, output_names(paths)):
+        outputs = {"sphere": "%s.sphere.%s" % (name, output_format), "report": name + ".report.json"}
+        if png:
+            outputs["png"] = name + ".png"
+        vertices = count_vertices(path)
+        tasks.append({"name": name, "input": str(path), "out_dir": str(out_dir), "outputs": outputs,
+                      "options": dict(options), "vertices": vertices,
+                      "memory_mb": memory_bound_mb(vertices, options["target"], options["formulation"])})
+    return tasks
+
+
+def _temporary_files(out_dir, tasks):
+    """Leftovers of atomic writes (``.NAME.*.tmp``) of this batch's outputs, e.g. after a kill -9."""
+    names = ["summary.csv", "summary.md"] + [n for t in tasks for n in t["outputs"].values()]
+    found = []
+    for name in names:
+        target = out_dir / name
+        found.extend(target.parent.glob("." + glob.escape(target.name) + ".*.tmp"))
+    return found
+
+
+def markdown_table(rows):
+    """The summary rows as a Markdown table (None shows as an empty cell).
+
+    Examples
+    --------
+    >>> print(markdown_table([{"mesh": "knight", "vertices": 502, "status": "certified",
+    ...                        "reason": "Solve_Succeeded", "time_s": 0.8, "iterations": 30,
+    ...                        "mean_abs_angle_diff_deg": 3.1, "mean_abs_log_area": 0.9, "qc_mean": 1.1,
+    ...                        "peak_rss_mb": 118, "resumed": False}]))
+    | mesh | vertices | status | exit reason | time (s) | iterations | mean abs Δangle (°) | mean abs log area ratio | QC mean | peak RSS (MB) | resumed |
+    |---|---|---|---|---|---|---|---|---|---|---|
+    | knight | 502 | certified | Solve_Succeeded | 0.80 | 30 | 3.10 | 0.900 | 1.100 | 118 |  |
+    """
+    lines = ["| " + " | ".join(header for _, header, _ in TABLE_COLUMNS) + " |",
+             "|" + "---|" * len(TABLE_COLUMNS)]
+    for row in rows:
+        cells = []
+        for key, _, fmt in TABLE_COLUMNS:
+            value = row.get(key)
+            if key == "resumed":
+                value = "yes" if value else None
+            cells.append(("" if value is None else fmt % value).replace("|", "\\|").replace("\n", " "))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_summary(out_dir, rows):
+    """Write ``summary.csv`` and ``summary.md`` atomically."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=SUMMARY_FIELDS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    with atomic_output(Path(out_dir) / "summary.csv") as out:
+        out.write(buffer.getvalue())
+    certified = sum(row["status"] in CERTIFIED for row in rows)
+    with atomic_output(Path(out_dir) / "summary.md") as out:
+        out.write("%d meshes: %d certified, %d failed\n\n" % (len(rows), certified, len(rows) - certified))
+        out.write(markdown_table(rows) + "\n")
+
+
+@contextmanager
+def _single_threaded_blas():
+    """Pin BLAS/OpenMP threads to 1 in the worker processes started within (they inherit the environment)."""
+    names = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    saved = {name: os.environ.get(name) for name in names}
+    os.environ.update({name: "1" for name in names})
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+_IN_TASK = False
+
+
+def _stop_worker(signum, frame):
+    """SIGTERM in a local worker: interrupt its mesh (its atomic writes clean up), or just exit when idle."""
+    if _IN_TASK:
+        raise KeyboardInterrupt
+    os._exit(130)
+
+
+def _init_worker():
+    # Ctrl-C reaches the whole process group; the workers leave it to the parent, which stops them
+    # with SIGTERM (see _interrupt_workers).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _stop_worker)
+
+
+def _map_one_in_worker(task):
+    global _IN_TASK
+    _IN_TASK = True
+    try:
+        return map_one(task)
+    finally:
+        _IN_TASK = False
+
+
+def _error_row(task, exc):
+    """The row of a mesh whose run raised something unexpected (a bug, a file system error)."""
+    return failure_row(task, "error", "%s: %s" % (type(exc).__name__, exc))
+
+
+@contextmanager
+def _noticing_sigint():
+    """A function telling whether Ctrl-C came, which CasADi may turn into a stopped solve."""
+    # CasADi catches the KeyboardInterrupt raised inside IPOPT's callbacks and ends the solve with a
+    # warning, so the batch could go on to the next mesh; the flag makes it stop all the same.
+    hit = []
+    if threading.current_thread() is not threading.main_thread() \
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield lambda: bool(hit)
+        return
+
+    def handler(signum, frame):
+        hit.append(signum)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield lambda: bool(hit)
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def _run_sequential(tasks, report_row, notify):
+    with _noticing_sigint() as interrupted:
+        for task in tasks:
+            notify("start", task)
+            try:
+                row = map_one(task)
+            except Exception as exc:          # on this mesh only; KeyboardInterrupt stops the batch
+                row = _error_row(task, exc)
+            if interrupted():
+                # This mesh's solve may have been cut short: a failure is not its own, nor recorded.
+                if row["status"] not in CERTIFIED:
+                    _remove([Path(task["out_dir"]) / task["outputs"]["report"]])
+                raise KeyboardInterrupt
+            report_row(task, row)
+
+
+def _run_local(tasks, jobs, budget_mb, report_row, notify):
+    """Up to ``jobs`` meshes at a time in worker processes, within ``budget_mb`` of planned memory."""
+    import multiprocessing
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    # spawn: fresh interpreters that read the pinned thread counts when they load BLAS.
+    context = multiprocessing.get_context("spawn")
+
+    def new_executor():
+        return ProcessPoolExecutor(max_workers=jobs, mp_context=context, initializer=_init_worker)
+
+    pending = deque(tasks)
+    running = {}
+    attempts = {}
+    with _single_threaded_blas():
+        executor = new_executor()
+        try:
+            while pending or running:
+                while pending and len(running) < jobs:
+                    task = pending[0]
+                    planned = sum(t["memory_mb"] for t in running.values())
+                    if running and planned + task["memory_mb"] > budget_mb:
+                        break                    # wait until it fits beside the runs going on
+                    pending.popleft()
+                    notify("start", task)
+                    running[executor.submit(_map_one_in_worker, task)] = task
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                broken = False
+                for future in done:
+                    task = running.pop(future)
+                    try:
+                        report_row(task, future.result())
+                    except BrokenProcessPool:
+                        broken = True
+                        attempts[task["name"]] = attempts.get(task["name"], 0) + 1
+                        if attempts[task["name"]] < WORKER_ATTEMPTS:
+                            pending.appendleft(task)
+                        else:
+                            report_row(task, failure_row(
+                                task, "error", "its worker process died (killed by the system, e.g. for "
+                                "lack of memory, or crashed)"))
+                    except Exception as exc:     # a bug or a file system error, on this mesh only
+                        report_row(task, _error_row(task, exc))
+                if broken:
+                    for future, task in running.items():     # they died with the pool: run them again
+                        pending.appendleft(task)
+                    running.clear()
+                    executor.shutdown(wait=False, cancel_futures=True)
+                    executor = new_executor()
+        except BaseException:
+            _interrupt_workers(executor)
+            raise
+        executor.shutdown(wait=True)
+
+
+def _interrupt_workers(executor, grace_s=10.0):
+    """Stop the workers: SIGTERM (a mesh's atomic writes remove their temporary files), then SIGKILL.
+
+    A worker inside IPOPT's C code sees the signal only at its next return to Python; one that has not
+    stopped after ``grace_s`` is killed, and the batch removes temporary files left behind.
+    """
+    # ProcessPoolExecutor has no public way to interrupt running calls; its _processes are the workers.
+    processes = list((getattr(executor, "_processes", None) or {}).values())
+    executor.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    deadline = time.monotonic() + grace_s
+    for process in processes:
+        process.join(max(0.0, deadline - time.monotonic()))
+        if process.is_alive():
+            process.kill()
+            process.join(1.0)
+
+
+def _run_dask(tasks, client, retries, report_row, notify):
+    """Every mesh as a Dask future on ``client``'s cluster; rows as they complete."""
+    from distributed import as_completed
+
+    workers = client.scheduler_info().get("workers", {}).values()
+    memories = [w.get("resources", {}).get("MEMORY") for w in workers]
+    # Workers started with `--resources MEMORY=<bytes>` get no more runs at once than fit in it.
+    annotate = bool(memories) and all(m is not None for m in memories)
+    largest = max(memories) if annotate else None
+    batch_id = uuid.uuid4().hex[:8]
+    futures = {}
+    try:
+        for task in tasks:
+            extra = {}
+            if annotate:
+                extra["resources"] = {"MEMORY": min(task["memory_mb"] * 2 ** 20, largest)}
+            future = client.submit(map_one, task, key="sphere-nlp-%s-%s" % (task["name"], batch_id),
+                                   retries=retries, pure=False, **extra)
+            futures[future] = task
+            notify("start", task)
+        for future in as_completed(list(futures)):
+            task = futures[future]
+            if future.status == "finished":
+                row = future.result()
+            elif future.status == "cancelled":
+                row = failure_row(task, "error", "its Dask task was cancelled")
+            else:
+                row = _error_row(task, future.exception())
+            report_row(task, row)
+    except BaseException:
+        client.cancel(list(futures))
+        raise
+
+
+def _load_client(address):
+    try:
+        from distributed import Client
+    except ImportError:
+        raise errors.UsageError("--scheduler needs dask.distributed: pip install 'sphere_nlp[cluster]'") \
+            from None
+    try:
+        return Client(address, timeout="20s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise errors.UsageError("cannot connect to the Dask scheduler at %s: %s" % (address, exc)) from None
+
+
+def map_meshes(paths, out_dir, target="original-angles", *, angle_weight=None, area_weight=None,
+               formulation=DEFAULT_FORMULATION, max_iter=None, max_time=None, on_limit="fail",
+               output_format="off", png=False, png_measure="area", force=False, jobs=1, client=None,
+               retries=1, progress=None):
+    """Map every mesh of ``paths`` onto the sphere, writing into ``out_dir``; the summary rows.
+
+    Parameters
+    ----------
+    paths : list of str or Path
+        Mesh files, folders, glob patterns or ``@list.txt`` files (see :func:`expand_inputs`).
+    out_dir : str or Path
+        Created if missing; receives the spheres, reports, pictures and ``summary.csv``/``summary.md``
+        (see the module's description).
+    target, angle_weight, area_weight, formulation, max_iter, max_time, on_limit
+        As for :func:`sphere_nlp.parameterize`, for every mesh.
+    output_format : {"off", "obj", "ply"}
+        Format of the spheres; OBJ carries texture coordinates.
+    png : bool
+        Also write a picture per certified mesh, coloured by ``png_measure`` ("area" or "angle").
+    force : bool
+        Map every mesh again, even those already done by an earlier run.
+    jobs : int or None
+        Meshes mapped at a time in local worker processes; 1 maps them one after the other in this
+        process; None: one per core. Runs start only while their memory bounds fit in the memory
+        available at the start.
+    client : distributed.Client, optional
+        Run on this Dask cluster instead (``jobs`` is ignored); its workers must see ``paths`` and
+        ``out_dir`` at the same paths (a shared file system).
+    retries : int
+        Dask retries of a mesh whose task raised (a lost file system, say); a mesh that fails to map
+        is a row, not retried.
+    progress : callable(event, task, row, counts), optional
+        Called with "start" (row None) and "done" for each mesh; ``counts`` is a dict of done,
+        failed, running and total.
+
+    Returns
+    -------
+    list of dict
+        One row per mesh, in input order, with the keys of :data:`SUMMARY_FIELDS`.
+
+    Raises
+    ------
+    UsageError
+        No input, an input that does not exist, two inputs with the same output name, a bad option,
+        or an output folder that cannot be created. Nothing is run or written.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from sphere_nlp.shapes import write_models
+    >>> folder = tempfile.mkdtemp()
+    >>> write_models(folder)
+    >>> rows = map_meshes([folder + "/cylinder.off"], folder + "/out", target="equal-angles")
+    >>> rows[0]["mesh"], rows[0]["status"], rows[0]["output"]
+    ('cylinder', 'certified', 'cylinder.sphere.off')
+    >>> map_meshes([folder + "/cylinder.off"], folder + "/out", target="equal-angles")[0]["resumed"]
+    True
+    """
+    if target not in MODES:
+        raise errors.UsageError("unknown target mode %r; choose one of %s" % (target, ", ".join(MODES)))
+    if formulation not in FORMULATIONS:
+        raise errors.UsageError("unknown formulation %r; choose one of %s"
+                                % (formulation, ", ".join(FORMULATIONS)))
+    if on_limit not in ON_LIMIT:
+        raise errors.UsageError("unknown on_limit %r; choose one of %s" % (on_limit, ", ".join(ON_LIMIT)))
+    if output_format not in OUTPUT_FORMATS:
+        raise errors.UsageError("unknown output format %r; choose one of %s"
+                                % (output_format, ", ".join(OUTPUT_FORMATS)))
+    if png_measure not in ("area", "angle"):
+        raise errors.UsageError("unknown picture measure %r; choose area or angle" % png_measure)
+    if jobs is not None and (not isinstance(jobs, int) or jobs < 1):
+        raise errors.UsageError("jobs must be a positive integer (or None for one per core), not %r" % (jobs,))
+    if max_iter is not None and max_iter < 1:
+        raise errors.UsageError("max_iter must be at least 1, not %r" % (max_iter,))
+    if max_time is not None and not max_time > 0:
+        raise errors.UsageError("max_time must be positive, not %r" % (max_time,))
+    out_dir = Path(os.path.abspath(out_dir))
+    paths = expand_inputs(paths, exclude=out_dir)
+    if not paths:
+        raise errors.UsageError("no input mesh given")
+    options = {"target": target, "angle_weight": angle_weight, "area_weight": area_weight,
+               "formulation": formulation, "max_iter": max_iter, "max_time": max_time,
+               "on_limit": on_limit, "png_measure": png_measure}
+    tasks = plan(paths, out_dir, options, png=png, output_format=output_format)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise errors.UsageError("cannot create the output folder %s: %s" % (out_dir, exc.strerror or exc)) \
+            from None
+    if not os.access(out_dir, os.W_OK):
+        raise errors.UsageError("cannot write to the output folder %s" % out_dir)
+    _remove(_temporary_files(out_dir, tasks))
+
+    rows = {}
+    counts = {"done": 0, "failed": 0, "running": 0, "total": len(tasks)}
+    last_summary = [0.0]
+
+    def summary_rows():
+        return [rows[t["name"]] for t in tasks if t["name"] in rows]
+
+    def notify(event, task, row=None):
+        if event == "start":
+            counts["running"] += 1
+        if progress is not None:
+            progress(event, task, row, dict(counts))
+
+    def report_row(task, row, ran=True):
+        rows[task["name"]] = row
+        counts["done"] += 1
+        counts["running"] -= ran
+        counts["failed"] += row["status"] not in CERTIFIED
+        now = time.monotonic()
+        if now - last_summary[0] > 2.0 or counts["done"] == counts["total"]:
+            write_summary(out_dir, summary_rows())     # kept current, without rewriting it per mesh
+            last_summary[0] = now
+        notify("done", task, row)
+
+    todo = []
+    for task in tasks:
+        row = None if force else finished_row(task)
+        if row is None:
+            todo.append(task)
+        else:
+            report_row(task, row, ran=False)
+    try:
+        if client is not None:
+            _run_dask(todo, client, retries, report_row, notify)
+        else:
+            jobs = usable_cores() if jobs is None else jobs
+            jobs = min(jobs, len(todo))
+            if jobs <= 1:
+                _run_sequential(todo, report_row, notify)
+            else:
+                budget = MEMORY_BUDGET_SHARE * available_memory_mb()
+                _run_local(todo, jobs, budget, report_row, notify)
+    finally:
+        if rows:
+            write_summary(out_dir, summary_rows())
+        _remove(_temporary_files(out_dir, tasks))
+    return summary_rows()
+
+
+# ------------------------------------------------------------------------------ command line
+
+def _format_duration(seconds):
+    seconds = int(round(seconds))
+    if seconds < 60:
+        return "%d s" % seconds
+    if seconds < 3600:
+        return "%d min %02d s" % divmod(seconds, 60)
+    return "%d h %02d min" % (seconds // 3600, seconds % 3600 // 60)
+
+
+class BatchProgress:
+    """Counts, failures and an ETA on stderr: one updating line on a terminal, a line a mesh otherwise.
+
+    Every failed mesh also gets a line of its own with its reason. Nothing when quiet.
+    """
+
+    def __init__(self, quiet=False, stream=None):
+        self.stream = stream or sys.stderr
+        self.quiet = quiet
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.pending = False
+        self.first_start = None
+        self.ran = 0
+
+    def say(self, text):
+        if self.quiet:
+            return
+        if self.pending:
+            self.stream.write("\r\033[K")
+            self.pending = False
+        self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def eta(self, counts):
+        if not self.ran or self.first_start is None:
+            return ""
+        per_mesh = (time.monotonic() - self.first_start) / self.ran
+        left = counts["total"] - counts["done"]
+        return ", ETA %s" % _format_duration(per_mesh * left) if left else ""
+
+    def __call__(self, event, task, row, counts):
+        if event == "start":
+            if self.first_start is None:
+                self.first_start = time.monotonic()
+            if self.tty:
+                self.status_line(counts)
+            return
+        if not row["resumed"]:
+            self.ran += 1
+        done = "[%d/%d]" % (counts["done"], counts["total"])
+        if row["status"] not in CERTIFIED:
+            self.say("batch: %s %s: %s: %s" % (done, row["mesh"], row["status"], row["reason"]))
+        elif not self.tty:
+            what = ("already done" if row["resumed"] else "%s, %s vertices, %.1f s"
+                    % (row["status"], row["vertices"], row["time_s"]))
+            self.say("batch: %s %s: %s%s" % (done, row["mesh"], what, self.eta(counts)))
+        if self.tty:
+            self.status_line(counts)
+
+    def status_line(self, counts):
+        if self.quiet:
+            return
+        self.stream.write("\r\033[Kbatch: %d/%d done, %d failed, %d running%s"
+                          % (counts["done"], counts["total"], counts["failed"], counts["running"],
+                             self.eta(counts)))
+        self.stream.flush()
+        self.pending = True
+
+    def finish_line(self):
+        if self.pending:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.pending = False
+
+
+def build_parser():
+    parser = argparse.ArgumentParser(
+        prog="sphere-nlp batch",
+        description="Map many meshes onto the sphere with the same options. DIR receives per mesh its "
+                    "certified sphere NAME.sphere.off and NAME.report.json, and summary.csv and summary.md. "
+                    "A failing mesh is recorded and the batch goes on; a rerun skips the meshes already "
+                    "done. Exit status: 0 all certified, 1 some failed, 2 bad usage.",
+        epilog="examples:\n  sphere-nlp batch meshes/ --out spheres\n"
+               "  sphere-nlp batch 'data/**/*.obj' @more.txt --out spheres --jobs 2 --png\n"
+               "  sphere-nlp batch meshes/ --out /shared/spheres --scheduler tcp://head:8786\n",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("inputs", nargs="+", metavar="INPUT",
+                        help="mesh files, folders (their .off/.obj/.ply/.stl files), glob patterns "
+                             "('data/**/*.obj', quoted) or @list.txt (one input a line)")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    out = parser.add_argument_group("outputs (per certified mesh)")
+    out.add_argument("--format", choices=OUTPUT_FORMATS, default="off",
+                     help="sphere format (default off); obj carries longitude/latitude texture coordinates")
+    out.add_argument("--png", action="store_true", help="also a picture NAME.png coloured by distortion")
+    out.add_argument("--png-measure", choices=("area", "angle"), default="area",
+                     help="colouring of the pictures (default area)")
+    method = parser.add_argument_group("method (as for a single mesh)")
+    method.add_argument("--target", default="original-angles", choices=MODES, metavar="MODE",
+                        help="%s (default: original-angles)" % ", ".join(MODES))
+    method.add_argument("--angle-weight", type=float, metavar="W", help="weight of the angle term")
+    method.add_argument("--area-weight", type=float, metavar="W", help="weight of the area term")
+    method.add_argument("--formulation", default=DEFAULT_FORMULATION, choices=FORMULATIONS, metavar="F",
+                        help="log-chord (default), substituted or faithful")
+    limits = parser.add_argument_group("solver limits, per mesh")
+    limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit per stage")
+    limits.add_argument("--max-time", type=float, metavar="S", help="wall-clock limit per IPOPT stage, seconds")
+    limits.add_argument("--on-limit", choices=ON_LIMIT, default="fail",
+                        help="at a limit: fail the mesh (default), or project and write a certified, not "
+                             "optimal, sphere")
+    run = parser.add_argument_group("running")
+    run.add_argument("--force", action="store_true", help="map again the meshes an earlier run did")
+    run.add_argument("--jobs", type=int, metavar="N",
+                     help="meshes at a time in worker processes (default: one per core, as memory allows)")
+    run.add_argument("--scheduler", metavar="ADDRESS",
+                     help="run on this Dask distributed scheduler (e.g. tcp://host:8786); its workers "
+                          "must see the inputs and DIR at the same paths")
+    run.add_argument("--retries", type=int, default=1, metavar="N",
+                     help="with --scheduler, Dask retries of a task that raised (default 1)")
+    run.add_argument("-q", "--quiet", action="store_true", help="print only usage errors")
+    run.add_argument("--debug", action="store_true", help="show tracebacks")
+    return parser
+
+
+def main(argv=None):
+    """``sphere-nlp batch INPUT... --out DIR [options]``; the exit status."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exit_:
+        return int(exit_.code or 0)
+    progress = BatchProgress(quiet=args.quiet)
+    client = None
+    try:
+        if args.jobs is not None and args.jobs < 1:
+            raise errors.UsageError("--jobs must be at least 1, not %d" % args.jobs)
+        if args.scheduler and args.jobs is not None:
+            raise errors.UsageError("--jobs is for local runs; with --scheduler the cluster's workers "
+                                    "decide how many meshes run at a time")
+        if args.retries < 0:
+            raise errors.UsageError("--retries must be 0 or more, not %d" % args.retries)
+        out_dir = Path(args.out)
+        paths = expand_inputs(args.inputs, exclude=out_dir)
+        output_names(paths)                       # a clash of names is found before anything is said
+        if args.scheduler:
+            client = _load_client(args.scheduler)
+            where = "on the Dask cluster at %s" % args.scheduler
+        else:
+            jobs = min(args.jobs or usable_cores(), len(paths))
+            where = "up to %d at a time" % jobs if jobs > 1 else "one at a time"
+        progress.say("batch: %d mesh(es), target %s, %s -> %s" % (len(paths), args.target, where, out_dir))
+        rows = map_meshes(paths, out_dir, target=args.target, angle_weight=args.angle_weight,
+                          area_weight=args.area_weight, formulation=args.formulation,
+                          max_iter=args.max_iter, max_time=args.max_time, on_limit=args.on_limit,
+                          output_format=args.format, png=args.png, png_measure=args.png_measure,
+                          force=args.force, jobs=args.jobs, client=client, retries=args.retries,
+                          progress=progress)
+    except errors.SphereNLPError as exc:
+        progress.finish_line()
+        if args.debug:
+            import traceback
+            traceback.print_exc()
+        print("sphere_nlp batch: error: %s" % exc, file=sys.stderr)
+        return exc.exit_status
+    except KeyboardInterrupt:
+        progress.finish_line()
+        print("sphere_nlp batch: interrupted; the meshes done so far are in %s (summary.csv); run the "
+              "same command again to go on" % args.out, file=sys.stderr)
+        return 130
+    except OSError as exc:
+        progress.finish_line()
+        print("sphere_nlp batch: error: cannot write to %s: %s" % (args.out, exc.strerror or exc),
+              file=sys.stderr)
+        return 1
+    finally:
+        if client is not None:
+            client.close()
+    progress.finish_line()
+    failed = [row for row in rows if row["status"] not in CERTIFIED]
+    resumed = sum(bool(row["resumed"]) for row in rows)
+    progress.say("batch: %d certified (%d already done), %d failed; summary in %s"
+                 % (len(rows) - len(failed), resumed, len(failed), Path(args.out) / "summary.md"))
+    return 1 if failed else 0
