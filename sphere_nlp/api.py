@@ -398,6 +398,22 @@ def _check_limits(max_iter, max_time):
         raise errors.UsageError("max_time must be a positive finite number of seconds, not %r" % (max_time,))
 
 
+def check_run_options(target="original-angles", formulation=DEFAULT_FORMULATION, on_limit="fail", max_iter=None,
+                      max_time=None, angle_weight=None, area_weight=None):
+    """UsageError naming the first of :func:`parameterize`'s options that is not valid, before any work."""
+    if target not in MODES:
+        raise errors.UsageError("unknown target mode %r; choose one of %s" % (target, ", ".join(MODES)))
+    if formulation not in FORMULATIONS:
+        raise errors.UsageError("unknown formulation %r; choose one of %s"
+                                % (formulation, ", ".join(FORMULATIONS)))
+    if on_limit not in ON_LIMIT:
+        raise errors.UsageError("unknown on_limit %r; choose one of %s" % (on_limit, ", ".join(ON_LIMIT)))
+    _check_limits(max_iter, max_time)
+    for name, weight in (("angle_weight", angle_weight), ("area_weight", area_weight)):
+        if weight is not None and not _is_finite_number(weight):
+            raise errors.UsageError("%s must be a finite number, not %r" % (name, weight))
+
+
 def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weight=None,
                  target_angles=None, target_excess=None, formulation=DEFAULT_FORMULATION, max_iter=None,
                  max_time=None, on_limit="fail", ipopt_options=None, progress=None, on_stage=None, start=None,
@@ -483,17 +499,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     >>> result.certificate.valid, result.max_constraint_violation < 1e-8
     (True, True)
     """
-    if target not in MODES:
-        raise errors.UsageError("unknown target mode %r; choose one of %s" % (target, ", ".join(MODES)))
-    if formulation not in FORMULATIONS:
-        raise errors.UsageError("unknown formulation %r; choose one of %s"
-                                % (formulation, ", ".join(FORMULATIONS)))
-    if on_limit not in ON_LIMIT:
-        raise errors.UsageError("unknown on_limit %r; choose one of %s" % (on_limit, ", ".join(ON_LIMIT)))
-    _check_limits(max_iter, max_time)
-    for name, weight in (("angle_weight", angle_weight), ("area_weight", area_weight)):
-        if weight is not None and not _is_finite_number(weight):
-            raise errors.UsageError("%s must be a finite number, not %r" % (name, weight))
+    check_run_options(target, formulation, on_limit, max_iter, max_time, angle_weight, area_weight)
     timings = {}
     clock = time.perf_counter()
     run_started = clock

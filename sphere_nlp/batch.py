@@ -751,13 +751,9 @@ def map_meshes(paths, out_dir, target="original-angles", *, angle_weight=None, a
     >>> map_meshes([folder + "/cylinder.off"], folder + "/out", target="equal-angles")[0]["resumed"]
     True
     """
-    if target not in MODES:
-        raise errors.UsageError("unknown target mode %r; choose one of %s" % (target, ", ".join(MODES)))
-    if formulation not in FORMULATIONS:
-        raise errors.UsageError("unknown formulation %r; choose one of %s"
-                                % (formulation, ", ".join(FORMULATIONS)))
-    if on_limit not in ON_LIMIT:
-        raise errors.UsageError("unknown on_limit %r; choose one of %s" % (on_limit, ", ".join(ON_LIMIT)))
+    from .api import check_run_options
+
+    check_run_options(target, formulation, on_limit, max_iter, max_time, angle_weight, area_weight)
     if output_format not in OUTPUT_FORMATS:
         raise errors.UsageError("unknown output format %r; choose one of %s"
                                 % (output_format, ", ".join(OUTPUT_FORMATS)))
@@ -765,10 +761,6 @@ def map_meshes(paths, out_dir, target="original-angles", *, angle_weight=None, a
         raise errors.UsageError("unknown picture measure %r; choose area or angle" % png_measure)
     if jobs is not None and (not isinstance(jobs, int) or jobs < 1):
         raise errors.UsageError("jobs must be a positive integer (or None for one per core), not %r" % (jobs,))
-    if max_iter is not None and max_iter < 1:
-        raise errors.UsageError("max_iter must be at least 1, not %r" % (max_iter,))
-    if max_time is not None and not max_time > 0:
-        raise errors.UsageError("max_time must be positive, not %r" % (max_time,))
     out_dir = Path(os.path.abspath(out_dir))
     paths = expand_inputs(paths, exclude=out_dir)
     if not paths:
