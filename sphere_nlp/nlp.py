@@ -35,11 +35,16 @@ The faithful and substituted forms keep (8) in the paper's quotient form, so the
 triangle (multiplying it out couples the two triangles of every edge and is much slower).
 """
 
+import contextlib
+import os
+import sys
 import time
 
 import casadi as ca
 import numpy as np
 import scipy.sparse as sp
+
+from . import interrupts
 
 FORMULATIONS = ("log-chord", "substituted", "faithful")
 # How the log-chord form is evaluated for IPOPT: "numpy" (vectorised over triangles, see
@@ -54,6 +59,49 @@ DROPPED_PENALTY = 100.0
 
 # IPOPT statuses that count as a solution; everything else is a failure.
 SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+
+
+def check_ipopt_options(options):
+    """Raise ValueError naming the first IPOPT option IPOPT rejects (unknown name, wrong type or value).
+
+    IPOPT is asked on a one-variable problem, with its complaint (an option dump on stdout) silenced,
+    so that a bad option is a usage error before any mesh is solved.
+
+    Example
+    -------
+    >>> check_ipopt_options({"tol": 1e-9})
+    >>> check_ipopt_options({"bogus_option": 1})
+    Traceback (most recent call last):
+    ...
+    ValueError: IPOPT rejects option bogus_option=1 (no such option)
+    """
+    x = ca.SX.sym("x")
+    for name, value in dict(options).items():
+        if not isinstance(name, str):
+            raise ValueError("IPOPT option names are strings, not %r" % (name,))
+        try:
+            with _stdout_silenced():
+                ca.nlpsol("check", "ipopt", {"x": x, "f": x * x},
+                          {"print_time": False, "ipopt": {name: value, "print_level": 0, "sb": "yes"}})
+        except (RuntimeError, TypeError, NotImplementedError) as exc:
+            text = str(exc)
+            reason = ("no such option" if "No such IPOPT option" in text else
+                      "wrong type" if "type mismatch" in text else "invalid value")
+            raise ValueError("IPOPT rejects option %s=%r (%s)" % (name, value, reason)) from None
+
+
+@contextlib.contextmanager
+def _stdout_silenced():
+    """Send file descriptor 1 (where IPOPT prints) to /dev/null inside the block."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
 
 
 def _sparse_dm(matrix):
@@ -140,6 +188,8 @@ class _ProgressCallback(ca.Callback):
         if self.abort_violation is not None and self.iterations_above >= self.abort_iterations:
             self.aborted = True
             return [1]                      # non-zero asks IPOPT to stop
+        if interrupts.stop_requested():     # a signal, or the run's deadline (see interrupts)
+            return [1]
         return [0]
 
 
@@ -860,11 +910,21 @@ class AngleNLP:
         if lam_x0 is not None:
             args["lam_x0"] = lam_x0
         start = time.perf_counter()
+        if interrupts.deadline_passed():
+            # The run's time is up (interrupts.deadline): report the limit without starting IPOPT.
+            return {"x": np.asarray(x0, float).ravel(), "lam_g": np.zeros(len(lbg)),
+                    "lam_x": np.zeros(self.n_variables), "objective": float("nan"),
+                    "status": "Maximum_WallTime_Exceeded", "success": False, "iterations": 0,
+                    "time_s": 0.0, "build_s": build_s}
         out = solver(**args)
+        # IPOPT swallows what its callbacks raise; a signal it caught ends the run here.
+        interrupts.raise_if_interrupted()
         stats = solver.stats()
         status = stats.get("return_status", "unknown")
         if callback.aborted:
             status = "Diverged"
+        elif status == "User_Requested_Stop" and interrupts.deadline_passed():
+            status = "Maximum_WallTime_Exceeded"
         return {
             "x": np.asarray(out["x"]).ravel(),
             "lam_g": np.asarray(out["lam_g"]).ravel(),

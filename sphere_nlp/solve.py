@@ -41,6 +41,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from . import interrupts
 from .nlp import DEFAULT_FORMULATION, DROPPED_PENALTY, AngleNLP
 
 DEFAULT_IPOPT_OPTIONS = {
@@ -235,6 +236,10 @@ LIMIT_STATUSES = ("Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded", "M
 # by < 0.1% (287.177 -> 287.115, 280.745 -> 280.692, 277.264 -> 277.238). The projection has its
 # own iteration cap, this (max_iter does not apply to it; max_time does).
 PROJECTION_ITERATIONS = 50
+# The projection runs after the stage that reached max_time; with max_time bounding the whole run
+# (interrupts.deadline), it may take this much more: a fifth of max_time plus 5 s.
+PROJECTION_GRACE_FRACTION = 0.2
+PROJECTION_GRACE_S = 5.0
 
 # Corners above this angle at the start use the obtuse form of the edge constraints (AngleNLP).
 OBTUSE_ANGLE = np.pi / 2
@@ -641,9 +646,12 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                                 first_options=first_options)
         if on_limit == "project" and direct["status"] in LIMIT_STATUSES and np.isfinite(direct["x"]).all():
             # Stopped by the caller's limits: hand back its iterate made feasible, if that works.
-            projection = project_onto_constraints(connectivity, targets, nlp, direct["x"], formulation,
-                                                  dropped, options, log_u_lower, mode_window,
-                                                  progress=stage_progress("projection"))
+            # Past a run's deadline (interrupts.deadline) the projection gets its own short grace.
+            grace = PROJECTION_GRACE_FRACTION * (max_time or 0.0) + PROJECTION_GRACE_S
+            with interrupts.extended_deadline(grace):
+                projection = project_onto_constraints(connectivity, targets, nlp, direct["x"], formulation,
+                                                      dropped, options, log_u_lower, mode_window,
+                                                      progress=stage_progress("projection"))
             stages.append(_stage_record("projection", projection))
             projected = _finish(connectivity, targets, *nlp.unpack(projection["x"]), projection, stages,
                                 init_angles, init_excess, start_kind, stopped_status=direct["status"])

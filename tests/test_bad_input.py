@@ -88,7 +88,7 @@ def run_cli(capsys, *args):
 def assert_one_error_line(stderr, fragments):
     lines = stderr.strip().splitlines()
     assert len(lines) == 1, stderr
-    assert lines[0].startswith("sphere_nlp: error: ") and "Traceback" not in stderr
+    assert lines[0].startswith("sphere-nlp: error: ") and "Traceback" not in stderr
     for fragment in fragments:
         assert fragment in lines[0], lines[0]
 
@@ -195,7 +195,7 @@ def test_cli_without_quiet_still_ends_in_one_error_line(tmp_path, capsys):
     status, stderr = run_cli(capsys, path, "-o", tmp_path / "s.off")
     assert status == 2
     # Progress is announced only once the mesh is valid, so the error is the only line.
-    assert stderr.strip().splitlines() == ["sphere_nlp: error: mesh has genus 1 (V - E + F = 0): only "
+    assert stderr.strip().splitlines() == ["sphere-nlp: error: mesh has genus 1 (V - E + F = 0): only "
                                            "genus 0 (sphere-like) surfaces can be mapped to the sphere"]
     assert "Traceback" not in stderr and not (tmp_path / "s.off").exists()
     status, stderr = run_cli(capsys, tmp_path / "missing.off", "-o", tmp_path / "s.off")

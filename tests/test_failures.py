@@ -40,7 +40,7 @@ def test_max_iter_is_a_failure_with_ipopt_status_and_no_output(tmp_path, capsys,
     status, stderr = run_cli(capsys, ellipsoid_file, "-o", out, "--max-iter", "1", "-q", "--report", report)
     assert status == 1
     lines = stderr.strip().splitlines()
-    assert len(lines) == 1 and re.fullmatch(r"sphere_nlp: error: the angle solve failed \(IPOPT status "
+    assert len(lines) == 1 and re.fullmatch(r"sphere-nlp: error: the angle solve failed \(IPOPT status "
                                             r"Maximum_Iterations_Exceeded after \d+ iterations\); nothing "
                                             r"written", lines[0]), stderr
     assert not out.exists() and leftovers(tmp_path) == []
@@ -139,7 +139,7 @@ def test_ctrl_c_during_the_solve_leaves_the_existing_output(tmp_path, capsys, mo
 
     monkeypatch.setattr(sphere_nlp.api, "solve_angles", interrupted_solve)
     status, stderr = run_cli(capsys, ellipsoid_file, "-o", out, "-q")
-    assert status == 130 and stderr.strip() == "sphere_nlp: interrupted; nothing written"
+    assert status == 130 and stderr.strip() == "sphere-nlp: interrupted; nothing written (SIGINT)"
     assert out.read_text() == PRECIOUS and leftovers(tmp_path) == []
 
 
