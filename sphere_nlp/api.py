@@ -301,9 +301,11 @@ def _unit_size(vertices):
     Angles and area ratios are unchanged; extreme coordinates (1e-150, 1e150) neither overflow nor
     underflow in the cross products of the distortion measures.
     """
-    low, high = vertices.min(axis=0), vertices.max(axis=0)
-    size = float(np.max(high - low)) / 2 or 1.0
-    return (vertices - (low + high) / 2) / size
+    # Halved first: differences of coordinates near 1.8e308 would overflow.
+    half = np.asarray(vertices, float) / 2
+    low, high = half.min(axis=0), half.max(axis=0)
+    size = float(np.max(high - low)) or 1.0
+    return (half - (low + high) / 2) / size
 
 
 def _as_arrays(mesh):

@@ -224,13 +224,14 @@ def check_output_paths(input_path, outputs):
                 raise errors.UsageError("%s and %s both name %s: each output needs its own file"
                                         % (other_option, option, path))
         path = Path(path)
-        if path.is_dir():
-            raise errors.UsageError("cannot write %s %s: it is a folder" % (option, path))
         folder = path.parent if str(path.parent) else Path(".")
-        if not folder.is_dir():
-            raise errors.UsageError("cannot write %s %s: %s" % (
-                option, path, "no such folder %s" % folder if not folder.exists() else "%s is not a folder" % folder))
         try:
+            if path.is_dir():
+                raise errors.UsageError("cannot write %s %s: it is a folder" % (option, path))
+            if not folder.is_dir():
+                raise errors.UsageError("cannot write %s %s: %s" % (
+                    option, path, "no such folder %s" % folder if not folder.exists()
+                    else "%s is not a folder" % folder))
             fd, probe = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".tmp", dir=folder)
             os.close(fd)
             os.unlink(probe)

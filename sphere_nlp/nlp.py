@@ -92,16 +92,28 @@ def check_ipopt_options(options):
 
 @contextlib.contextmanager
 def _stdout_silenced():
-    """Send file descriptor 1 (where IPOPT prints) to /dev/null inside the block."""
+    """Send standard output (where IPOPT and CasADi print) to /dev/null inside the block."""
     sys.stdout.flush()
     saved = os.dup(1)
     try:
         with open(os.devnull, "w") as null:
             os.dup2(null.fileno(), 1)
-        yield
+            # CasADi's Python build prints through sys.stdout, IPOPT's own journal through fd 1.
+            with contextlib.redirect_stdout(null):
+                yield
     finally:
+        _flush_c_stdio()                    # IPOPT's buffered text goes to /dev/null, not later to stdout
         os.dup2(saved, 1)
         os.close(saved)
+
+
+def _flush_c_stdio():
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):
+        pass
 
 
 def _sparse_dm(matrix):
