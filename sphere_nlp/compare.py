@@ -94,7 +94,7 @@ def run_method(method, mesh, prepared, max_time=None):
     prepared : sphere_nlp.repair.PreparedMesh
         The same mesh repaired, what the baselines run on and the metrics compare with.
     max_time : float, optional
-        Wall-clock limit per IPOPT stage for sphere_nlp methods.
+        Wall-clock limit of each sphere_nlp run (see :func:`~sphere_nlp.api.parameterize`).
 
     Returns
     -------
@@ -204,7 +204,7 @@ def compare(paths, out_dir, methods=METHODS, max_time=None, progress=None):
     methods : list of str
         Names from :data:`METHODS`.
     max_time : float, optional
-        Wall-clock limit per IPOPT stage for the sphere_nlp methods.
+        Wall-clock limit of each sphere_nlp run.
     progress : callable(str), optional
         Receives one line per row.
 
@@ -256,7 +256,7 @@ def main(argv=None):
                         help="comma-separated, from %s; 'sphere_nlp' = its four modes (default: all)"
                              % ", ".join(METHODS))
     parser.add_argument("--max-time", type=float, metavar="SECONDS",
-                        help="wall-clock limit per IPOPT stage for the sphere_nlp methods")
+                        help="wall-clock limit of each sphere_nlp run")
     parser.add_argument("-q", "--quiet", action="store_true", help="print only errors")
     try:
         args = parser.parse_args(argv)

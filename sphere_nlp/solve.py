@@ -513,7 +513,8 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     max_iter : int, optional
         IPOPT iteration limit per stage.
     max_time : float, optional
-        Wall-clock limit in seconds per stage.
+        Wall-clock limit in seconds per stage (the caller's whole-run limit is
+        :func:`sphere_nlp.interrupts.deadline`, enforced inside every stage).
     on_limit : {"fail", "project"}
         What a log-chord margin stage stopped by ``max_iter`` or ``max_time`` yields: a failed
         solve (default), or its iterate projected onto the constraints
