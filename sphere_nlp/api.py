@@ -530,7 +530,12 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     timings["solve"] -= build_s
     timings["build"] += build_s
 
-    positions, unfold_info = sphere_positions(connectivity, solution.angles, solution.excess)
+    if not solution.success and interrupts.deadline_passed():
+        # Out of time and nothing to write: the unfolding of a failed iterate is skipped
+        # (bipyramid(1000) stopped by max_time: 26 s of unfolding after the limit).
+        positions, unfold_info = np.full((connectivity.n_vertices, 3), np.nan), {}
+    else:
+        positions, unfold_info = sphere_positions(connectivity, solution.angles, solution.excess)
     lap("unfold", "certify")
     certificate = certify(positions, faces)
     angle_error = max_angle_error(positions, faces, solution.angles)

@@ -658,6 +658,11 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                                 init_angles, init_excess, start_kind, stopped_status=direct["status"])
             if projected.success:
                 return projected
+        if interrupts.deadline_passed():
+            # The run's time is up (interrupts.deadline): no fallback stage, each would be built
+            # only to stop at once (bipyramid(1000): 6.7 s of building after the limit).
+            return _finish(connectivity, targets, *nlp.unpack(direct["x"]), direct, stages, init_angles,
+                           init_excess, start_kind)
         run, with_margin = direct, True
         if _diverged(connectivity, nlp, direct["x"]):
             # The direct margin stage ran away from the solution set (hand_closed.obj
