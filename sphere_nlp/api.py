@@ -1,7 +1,10 @@
 """The Python API: :func:`parameterize` runs the whole pipeline and returns one result object."""
 
+import functools
+import numbers
 import os
 import resource
+import signal
 import sys
 import time
 from dataclasses import dataclass, field
@@ -9,13 +12,13 @@ from pathlib import Path
 
 import numpy as np
 
-from . import errors
+from . import errors, interrupts
 from .certify import Certificate, certify, spherical_angles
 from .repair import prepare_mesh
 from .metrics import distortion_summary
 from .mesh_io import (check_mesh_path, load_mesh, write_image, write_json, write_material, write_mesh,
                       write_npz)
-from .nlp import DEFAULT_FORMULATION, FORMULATIONS, status_kind
+from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, status_kind
 from .solve import ON_LIMIT, solve_angles
 from .targets import MODES, make_targets
 from .texture import checker_image, spherical_uv, split_at_seams
@@ -359,9 +362,11 @@ def _unit_size(vertices):
     Angles and area ratios are unchanged; extreme coordinates (1e-150, 1e150) neither overflow nor
     underflow in the cross products of the distortion measures.
     """
-    low, high = vertices.min(axis=0), vertices.max(axis=0)
-    size = float(np.max(high - low)) / 2 or 1.0
-    return (vertices - (low + high) / 2) / size
+    # Halved first: differences of coordinates near 1.8e308 would overflow.
+    half = np.asarray(vertices, float) / 2
+    low, high = half.min(axis=0), half.max(axis=0)
+    size = float(np.max(high - low)) or 1.0
+    return (half - (low + high) / 2) / size
 
 
 def _as_arrays(mesh):
@@ -379,28 +384,29 @@ def _as_arrays(mesh):
     except (TypeError, ValueError):
         raise errors.UsageError("mesh must be a file path, a trimesh.Trimesh or a (vertices, faces) pair") \
             from None
+    try:
+        as_array = np.asarray(vertices)
+    except (OverflowError, ValueError, TypeError):
+        as_array = None                         # ragged: check_arrays says so
+    if as_array is not None:
+        if np.iscomplexobj(as_array):
+            raise errors.UsageError("vertices must be real coordinates, not complex numbers")
+        if as_array.dtype == object:
+            try:
+                as_array.astype(float)
+            except OverflowError:
+                raise errors.UsageError("vertex coordinates too large for floating point (beyond "
+                                        "1.8e308)") from None
+            except (TypeError, ValueError):
+                pass
     return vertices, faces
 
 
-def _is_finite_number(value):
-    """A real (not bool, not complex) finite number."""
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
-        and bool(np.isfinite(value))
-
-
-def _check_limits(max_iter, max_time):
-    """UsageError unless the limits are absent or positive: IPOPT would otherwise reject them only
-    after the mesh was read and the NLP built, with an option dump instead of a message."""
-    if max_iter is not None and not (isinstance(max_iter, (int, np.integer)) and not isinstance(max_iter, bool)
-                                     and max_iter > 0):
-        raise errors.UsageError("max_iter must be a positive whole number, not %r" % (max_iter,))
-    if max_time is not None and not (_is_finite_number(max_time) and max_time > 0):
-        raise errors.UsageError("max_time must be a positive finite number of seconds, not %r" % (max_time,))
-
-
 def check_run_options(target="original-angles", formulation=DEFAULT_FORMULATION, on_limit="fail", max_iter=None,
-                      max_time=None, angle_weight=None, area_weight=None):
+                      max_time=None, angle_weight=None, area_weight=None, ipopt_options=None):
     """UsageError naming the first of :func:`parameterize`'s options that is not valid, before any work."""
+    _check_arguments(angle_weight=angle_weight, area_weight=area_weight, max_iter=max_iter,
+                     max_time=max_time, ipopt_options=ipopt_options)
     if target not in MODES:
         raise errors.UsageError("unknown target mode %r; choose one of %s" % (target, ", ".join(MODES)))
     if formulation not in FORMULATIONS:
@@ -408,12 +414,63 @@ def check_run_options(target="original-angles", formulation=DEFAULT_FORMULATION,
                                 % (formulation, ", ".join(FORMULATIONS)))
     if on_limit not in ON_LIMIT:
         raise errors.UsageError("unknown on_limit %r; choose one of %s" % (on_limit, ", ".join(ON_LIMIT)))
-    _check_limits(max_iter, max_time)
-    for name, weight in (("angle_weight", angle_weight), ("area_weight", area_weight)):
-        if weight is not None and not _is_finite_number(weight):
-            raise errors.UsageError("%s must be a finite number, not %r" % (name, weight))
 
 
+def _real(value, name):
+    """``value`` as a float, or UsageError (strings, complex numbers, overflowing integers)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Real, np.floating, np.integer)):
+        raise errors.UsageError("%s must be a number, not %r" % (name, value))
+    try:
+        return float(value)
+    except OverflowError:
+        raise errors.UsageError("%s=%s is too large" % (name, value)) from None
+
+
+def _check_arguments(angle_weight, area_weight, max_iter, max_time, ipopt_options):
+    """UsageError for a bad numeric argument or IPOPT option, before the mesh is read."""
+    for name, value in (("angle_weight", angle_weight), ("area_weight", area_weight)):
+        if value is not None:
+            weight = _real(value, name)
+            if not (np.isfinite(weight) and weight >= 0):
+                raise errors.UsageError("%s must be a finite number >= 0, not %r" % (name, value))
+    if max_iter is not None:
+        if isinstance(max_iter, (bool, np.bool_)) or not isinstance(max_iter, (numbers.Integral, np.integer)):
+            raise errors.UsageError("max_iter must be a whole number, not %r" % (max_iter,))
+        if max_iter <= 0 or max_iter >= 2 ** 31:
+            raise errors.UsageError("max_iter must be between 1 and 2**31 - 1, not %d" % max_iter)
+    if max_time is not None:
+        seconds = _real(max_time, "max_time")
+        if not (np.isfinite(seconds) and seconds > 0):
+            raise errors.UsageError("max_time must be a finite number of seconds > 0, not %r" % (max_time,))
+    if ipopt_options is not None:
+        if not isinstance(ipopt_options, dict):
+            raise errors.UsageError("ipopt_options must be a dict, not %s" % type(ipopt_options).__name__)
+        try:
+            check_ipopt_options(ipopt_options)
+        except ValueError as exc:
+            raise errors.UsageError(str(exc)) from None
+
+
+def _bounded(function):
+    """Run ``function`` with Ctrl-C stopping IPOPT too, and ``max_time`` bounding the whole run.
+
+    See :mod:`sphere_nlp.interrupts`: a SIGINT inside IPOPT would otherwise end only one stage.
+    A program that set its own SIGINT handler keeps it.
+    """
+    @functools.wraps(function)
+    def bounded(*args, **kwargs):
+        max_time = kwargs.get("max_time")
+        if max_time is not None:
+            max_time = _real(max_time, "max_time")
+            if not (np.isfinite(max_time) and max_time > 0):
+                max_time = None                 # rejected inside with its message
+        with interrupts.handled_signals(signals=(signal.SIGINT,), only_default=True), \
+                interrupts.deadline(max_time):
+            return function(*args, **kwargs)
+    return bounded
+
+
+@_bounded
 def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weight=None,
                  target_angles=None, target_excess=None, formulation=DEFAULT_FORMULATION, max_iter=None,
                  max_time=None, on_limit="fail", ipopt_options=None, progress=None, on_stage=None, start=None,
@@ -435,9 +492,12 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         NLP formulation; all reach the same optimum (see :mod:`sphere_nlp.nlp`). ``faithful`` is the
         paper verbatim with its staged solve; ``log-chord`` is the robust default.
     max_iter : int, optional
-        IPOPT iteration limit per stage.
+        IPOPT iteration limit per stage (>= 1).
     max_time : float, optional
-        Wall-clock limit per IPOPT stage, in seconds.
+        Wall-clock limit of the whole call, in seconds (finite, > 0): every IPOPT stage stops at
+        its first iteration past it, so the call returns after at most one more iteration, the
+        unfolding and the certificate (and with ``on_limit="project"`` the projection, which may
+        take a fifth of ``max_time`` plus 5 s more).
     on_limit : {"fail", "project"}
         When the main (margin) stage reaches ``max_iter`` or ``max_time``: fail (default: SolveError
         with ``check``, ``solved=False``), or project its last iterate onto the constraints and go
@@ -482,8 +542,12 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     DegenerateFaceError
         A face whose smallest corner angle is below 1e-10 rad (zero area).
     UsageError
-        Unknown target mode or formulation, bad weights or custom targets, start positions that are
+        Unknown target mode or formulation; weights that are not finite numbers >= 0; ``max_iter``
+        not a whole number >= 1; ``max_time`` not a finite number > 0; an IPOPT option IPOPT
+        rejects; complex or overflowing coordinates; bad custom targets; start positions that are
         not a valid spherical map of the mesh.
+    KeyboardInterrupt
+        Ctrl-C, also inside IPOPT (as :class:`sphere_nlp.interrupts.Interrupted`).
     SolveError
         IPOPT failed or hit ``max_iter`` / ``max_time`` (only with ``check=True``).
     CertificateError
@@ -499,7 +563,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     >>> result.certificate.valid, result.max_constraint_violation < 1e-8
     (True, True)
     """
-    check_run_options(target, formulation, on_limit, max_iter, max_time, angle_weight, area_weight)
+    check_run_options(target, formulation, on_limit, max_iter, max_time, angle_weight, area_weight,
+                      ipopt_options)
     timings = {}
     clock = time.perf_counter()
     run_started = clock
@@ -536,7 +601,12 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     timings["solve"] -= build_s
     timings["build"] += build_s
 
-    positions, unfold_info = sphere_positions(connectivity, solution.angles, solution.excess)
+    if not solution.success and interrupts.deadline_passed():
+        # Out of time and nothing to write: the unfolding of a failed iterate is skipped
+        # (bipyramid(1000) stopped by max_time: 26 s of unfolding after the limit).
+        positions, unfold_info = np.full((connectivity.n_vertices, 3), np.nan), {}
+    else:
+        positions, unfold_info = sphere_positions(connectivity, solution.angles, solution.excess)
     lap("unfold", "certify")
     certificate = certify(positions, faces)
     angle_error = max_angle_error(positions, faces, solution.angles)

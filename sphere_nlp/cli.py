@@ -1,17 +1,23 @@
 """Command line: ``python -m sphere_nlp INPUT [options]`` (a thin layer over :func:`parameterize`).
 
 Exit status: 0 a certified sphere was written; 1 the solve or the certificate failed (nothing
-written); 2 bad input or bad usage (nothing written).
+written); 2 bad input or bad usage, found before any solving (nothing written); 130 / 143 ended by
+SIGINT / SIGTERM (nothing written or replaced). All outputs of a run are renamed into place together,
+only after everything succeeded (:func:`sphere_nlp.mesh_io.output_transaction`).
 """
 
 import argparse
+import math
+import os
+import signal
 import sys
+import tempfile
 import time
 import traceback
 from pathlib import Path
 
-from . import __version__, errors
-from .mesh_io import check_mesh_path
+from . import __version__, errors, interrupts
+from .mesh_io import check_mesh_path, output_transaction
 from .nlp import FORMULATIONS
 from .solve import ON_LIMIT
 from .targets import MODES
@@ -24,9 +30,19 @@ EXAMPLES = """examples:
 """
 
 
+PROG = "sphere-nlp"
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors raised as UsageError: one line, the tool's own prefix."""
+
+    def error(self, message):
+        raise errors.UsageError("%s (see %s --help)" % (message, self.prog))
+
+
 def build_parser():
-    parser = argparse.ArgumentParser(
-        prog="sphere-nlp",
+    parser = _Parser(
+        prog=PROG,
         description="Map a closed genus-0 triangle mesh onto the unit sphere without overlaps\n"
                     "(Sheffer, Gotsman & Dyn 2004), certified before anything is written.\n"
                     "`sphere-nlp reproduce fig3 --out DIR` redraws the paper's Fig. 3;\n"
@@ -36,7 +52,8 @@ def build_parser():
     parser.add_argument("--version", action="version", version="sphere-nlp " + __version__)
     out = parser.add_argument_group("output (each written atomically, only for a certified sphere)")
     out.add_argument("-o", "--output", metavar="OUT", help="sphere mesh, .off/.obj/.ply; .obj carries longitude/latitude "
-                                            "texture coordinates (default: <input stem>.sphere.off here)")
+                                            "texture coordinates (default: <input name without its last "
+                                            "extension>.sphere.off here)")
     out.add_argument("--png", metavar="OUT.png",
                      help="picture: mesh and sphere coloured by distortion, mesh checkerboarded")
     out.add_argument("--png-measure", choices=("area", "angle"),
@@ -61,8 +78,10 @@ def build_parser():
     method.add_argument("--formulation", default="log-chord", choices=FORMULATIONS, metavar="F",
                         help="log-chord (default), substituted or faithful (the paper verbatim)")
     limits = parser.add_argument_group("solver limits (reaching one is a failure, unless --on-limit project)")
-    limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit per stage")
-    limits.add_argument("--max-time", type=float, metavar="S", help="wall-clock limit per IPOPT stage, seconds")
+    limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit per stage (>= 1)")
+    limits.add_argument("--max-time", type=float, metavar="S",
+                        help="wall-clock limit of the whole run, seconds (> 0; the solve stops at its first "
+                             "IPOPT iteration past it)")
     limits.add_argument("--on-limit", choices=ON_LIMIT, default="fail",
                         help="when the main stage reaches a limit: fail (default), or project its last "
                              "iterate onto the constraints and write that certified, not optimal, sphere")
@@ -194,35 +213,102 @@ def _texture_beside(obj_path, texture):
     return Path(obj_path).parent / texture if texture.parent == Path(".") else texture
 
 
-def _check_distinct_outputs(input_path, output, args):
-    """UsageError if an output would replace the input or another output of the same run."""
-    named = [("-o", output), ("--png", args.png), ("--textured-input", args.textured_input),
-             ("--report", args.report), ("--save-solution", args.save_solution),
-             ("--texture", _texture_beside(output, args.texture) if output.suffix.lower() == ".obj" else None)]
-    seen = {Path(input_path).resolve(): "the input"}
-    for option, path in named:
-        if not path:
-            continue
-        resolved = Path(path).resolve()
-        if resolved in seen:
-            raise errors.UsageError("cannot write %s (%s): it is %s" % (path, option, seen[resolved]))
-        seen[resolved] = "also the %s output" % option
+def default_output(input_path):
+    """``<input name without its last extension>.sphere.off``, in the current folder.
+
+    ``knight.v1.off`` gives ``knight.v1.sphere.off`` (not ``knight.sphere.off``, which ``knight.v2.off``
+    would overwrite), ``.hidden.off`` gives ``.hidden.sphere.off``.
+    """
+    return Path(Path(input_path).stem + ".sphere.off")
+
+
+def _same_file(a, b):
+    """Whether two paths name one file (the same path, or links to one existing file)."""
+    if os.path.abspath(a) == os.path.abspath(b):
+        return True
+    try:
+        return os.path.realpath(a) == os.path.realpath(b) or os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_output_paths(input_path, outputs):
+    """Raise UsageError unless every output can be written, before anything is solved.
+
+    ``outputs`` is a list of (option, path). Each must differ from the input and from the others,
+    must not be a folder, and its folder must exist and take a new file of that name: a temporary
+    file named as :func:`~sphere_nlp.mesh_io.atomic_output` names it is created there and removed,
+    which also catches read-only folders and names too long.
+    """
+    for k, (option, path) in enumerate(outputs):
+        if _same_file(path, input_path):
+            raise errors.UsageError("%s %s is the input file: choose another name (the input is never "
+                                    "replaced)" % (option, path))
+        for other_option, other in outputs[:k]:
+            if _same_file(path, other):
+                raise errors.UsageError("%s and %s both name %s: each output needs its own file"
+                                        % (other_option, option, path))
+        path = Path(path)
+        folder = path.parent if str(path.parent) else Path(".")
+        try:
+            if path.is_dir():
+                raise errors.UsageError("cannot write %s %s: it is a folder" % (option, path))
+            if not folder.is_dir():
+                raise errors.UsageError("cannot write %s %s: %s" % (
+                    option, path, "no such folder %s" % folder if not folder.exists()
+                    else "%s is not a folder" % folder))
+            fd, probe = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".tmp", dir=folder)
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as exc:
+            raise errors.UsageError("cannot write %s %s: %s" % (option, path, exc.strerror or exc)) from None
+
+
+def check_arguments(args):
+    """Option values the parser cannot check itself (UsageError), before the mesh is read."""
+    from .api import _check_arguments
+
+    for option, value in (("--max-time", args.max_time), ("--angle-weight", args.angle_weight),
+                          ("--area-weight", args.area_weight)):
+        if value is not None and not math.isfinite(value):
+            raise errors.UsageError("%s must be a finite number, not %s" % (option, value))
+    if args.max_time is not None and args.max_time <= 0:
+        raise errors.UsageError("--max-time must be > 0 seconds, not %g" % args.max_time)
+    if args.max_iter is not None and args.max_iter <= 0:
+        raise errors.UsageError("--max-iter must be >= 1, not %d" % args.max_iter)
+    try:
+        _check_arguments(angle_weight=args.angle_weight, area_weight=args.area_weight,
+                         max_iter=args.max_iter, max_time=args.max_time, ipopt_options=None)
+    except errors.UsageError as exc:           # the API's words for the options' values
+        raise errors.UsageError(str(exc).replace("angle_weight", "--angle-weight")
+                                .replace("area_weight", "--area-weight").replace("max_iter", "--max-iter")
+                                .replace("max_time", "--max-time")) from None
 
 
 def run(args, progress):
     from .api import parameterize, solve_failure_message
 
     input_path = Path(args.input)
-    # The stem keeps inner dots (knight.v1.off -> knight.v1.sphere.off), so versions do not collide.
-    output = Path(args.output) if args.output else Path(input_path.stem + ".sphere.off")
-    # Every output name is checked before the (possibly long) solve.
+    output = Path(args.output) if args.output else default_output(input_path)
+    # Every option and output path is checked before the (possibly long) solve.
+    check_arguments(args)
     check_mesh_path(output)
     _check_suffix(args.png, ".png", "a picture")
     _check_suffix(args.textured_input, ".obj", "a textured mesh")
     _check_suffix(args.texture, ".png", "a texture")
-    _check_distinct_outputs(input_path, output, args)
-    if args.texture and output.suffix.lower() != ".obj" and not args.textured_input:
+    is_obj = output.suffix.lower() == ".obj"
+    if args.texture and not is_obj and not args.textured_input:
         raise errors.UsageError("--texture needs an OBJ output (-o X.obj or --textured-input X.obj)")
+    outputs = [("-o" if args.output else "the default output", output)]
+    outputs += [(option, Path(path)) for option, path in
+                (("--png", args.png), ("--textured-input", args.textured_input),
+                 ("--save-solution", args.save_solution), ("--report", args.report)) if path]
+    # The texture image goes beside each OBJ written (one file when both OBJs share a folder).
+    textures = {_texture_beside(obj, args.texture).resolve() for obj in
+                ([output] if is_obj else []) + ([Path(args.textured_input)] if args.textured_input else [])
+                if args.texture}
+    outputs += [("--texture", path) for path in sorted(textures)]
+    check_output_paths(input_path, outputs)
 
     def on_stage(name):
         # Announced once the mesh has been read and validated, so bad input gets only its error line.
@@ -237,27 +323,72 @@ def run(args, progress):
                           on_stage=on_stage, check=False)
     for repair in result.repairs:
         progress.say("repaired: " + repair)
-    if args.report:
-        result.write_report(args.report)
     if not result.success:
+        if args.report:
+            result.write_report(args.report)
         if not result.solved:
             raise errors.SolveError(solve_failure_message(result.status, result.iterations)
                                     + "; nothing written")
         raise errors.CertificateError("the sphere failed its certificate (%s; IPOPT status %s); nothing "
                                       "written" % (result.certificate.reason, result.status))
     progress.stage("write")
-    is_obj = output.suffix.lower() == ".obj"
-    result.write(output, texture=_texture_beside(output, args.texture) if is_obj else None)
-    if args.textured_input:
-        result.write_textured_input(args.textured_input,
-                                    texture=_texture_beside(args.textured_input, args.texture))
-    if args.save_solution:
-        result.save_solution(args.save_solution)
-    if args.png:
-        progress.stage("write (picture)")
-        result.write_png(args.png, measure=args.png_measure, view=args.view)
+    _write_hook("start")
+    # All outputs are staged as temporary files and renamed into place together at the end.
+    with output_transaction():
+        result.write(output, texture=_texture_beside(output, args.texture) if is_obj else None)
+        if args.textured_input:
+            result.write_textured_input(args.textured_input,
+                                        texture=_texture_beside(args.textured_input, args.texture))
+        if args.save_solution:
+            result.save_solution(args.save_solution)
+        if args.png:
+            progress.stage("write (picture)")
+            result.write_png(args.png, measure=args.png_measure, view=args.view)
+        if args.report:
+            result.write_report(args.report)
+        _write_hook("staged")
+    # Committed (interrupts.committed): from here on a signal no longer undoes the run.
     progress.say(summary_line(output, result))
     return 0
+
+
+def _write_hook(moment):
+    """Test-only pause while writing: with SPHERE_NLP_TEST_WRITE_PAUSE set to "<moment>:<seconds>",
+    sleep there ("start": before any output, "staged": all temporary files written, none renamed),
+    so that a test can send a signal at that moment."""
+    spec = os.environ.get("SPHERE_NLP_TEST_WRITE_PAUSE", "")
+    if spec.partition(":")[0] == moment:
+        sys.stderr.write("sphere-nlp: test pause at %s\n" % moment)
+        sys.stderr.flush()
+        time.sleep(float(spec.partition(":")[2] or 5))
+
+
+class _SafeStream:
+    """stderr that never fails the run: a closed or broken stream (``2>&-``, a closed pipe) just
+    loses the message."""
+
+    def __init__(self, stream):
+        self.stream = stream
+
+    def write(self, text):
+        try:
+            if self.stream is not None:
+                self.stream.write(text)
+        except (OSError, ValueError):           # closed, broken pipe, full disk
+            self.stream = None
+
+    def flush(self):
+        try:
+            if self.stream is not None:
+                self.stream.flush()
+        except (OSError, ValueError):
+            self.stream = None
+
+    def isatty(self):
+        try:
+            return self.stream is not None and self.stream.isatty()
+        except (OSError, ValueError):
+            return False
 
 
 def main(argv=None):
@@ -286,35 +417,43 @@ def main(argv=None):
         from .batch import main as batch_main
 
         return batch_main(argv[1:])
+    stderr = _SafeStream(sys.stderr)
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
-    except SystemExit as exit_:
+    except errors.UsageError as exc:
+        stderr.write("%s: error: %s\n" % (PROG, exc))
+        return exc.exit_status
+    except SystemExit as exit_:        # --help
         return int(exit_.code or 0)
     # Without a time limit, a long stage gets a note on how to bound it (see LONG_STAGE_S).
-    progress = Progress(quiet=args.quiet, long_stage_s=LONG_STAGE_S if args.max_time is None else None)
+    progress = Progress(quiet=args.quiet, stream=stderr,
+                        long_stage_s=LONG_STAGE_S if args.max_time is None else None)
     try:
-        try:
-            return run(args, progress)
-        except errors.MeshInputError:
-            progress.clear_line()       # bad input: the error is the only line
-            raise
-        finally:
-            progress.finish_line()      # an error message gets a line of its own
-    except errors.SphereNLPError as exc:
-        if args.debug:
-            traceback.print_exc()
-        print("sphere-nlp: error: %s" % exc, file=sys.stderr)
-        return exc.exit_status
-    except KeyboardInterrupt:
-        print("sphere-nlp: interrupted; nothing written", file=sys.stderr)
-        return 130
+        with interrupts.handled_signals():
+            try:
+                try:
+                    return run(args, progress)
+                except errors.MeshInputError:
+                    progress.clear_line()       # bad input: the error is the only line
+                    raise
+                finally:
+                    progress.finish_line()      # an error message gets a line of its own
+            except errors.SphereNLPError as exc:
+                if args.debug:
+                    traceback.print_exc()
+                stderr.write("%s: error: %s\n" % (PROG, exc))
+                return exc.exit_status
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        stderr.write("%s: interrupted; nothing written (%s)\n" % (PROG, signal.Signals(signum).name))
+        return 128 + signum
     except MemoryError:
-        print("sphere-nlp: error: out of memory; nothing written", file=sys.stderr)
+        stderr.write("%s: error: out of memory; nothing written\n" % PROG)
         return 1
     except Exception as exc:  # a bug: still one line unless --debug
         if args.debug:
             traceback.print_exc()
-        print("sphere-nlp: internal error: %s: %s (rerun with --debug for a traceback)"
-              % (type(exc).__name__, exc), file=sys.stderr)
+        stderr.write("%s: internal error: %s: %s; nothing written (rerun with --debug for a traceback)\n"
+                     % (PROG, type(exc).__name__, exc))
         return 1

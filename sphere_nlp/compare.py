@@ -103,7 +103,7 @@ def run_method(method, mesh, prepared, max_time=None, keep=None):
     prepared : sphere_nlp.repair.PreparedMesh
         The same mesh repaired, what the baselines run on and the metrics compare with.
     max_time : float, optional
-        Wall-clock limit per IPOPT stage for sphere_nlp methods.
+        Wall-clock limit of each sphere_nlp run (see :func:`~sphere_nlp.api.parameterize`).
     keep : dict, optional
         Receives ``positions``, the map's sphere positions (None if it made none), for saving.
 
@@ -239,7 +239,7 @@ def compare(paths, out_dir, methods=DEFAULT_METHODS, max_time=None, progress=Non
     methods : list of str
         Names from :data:`METHODS`.
     max_time : float, optional
-        Wall-clock limit per IPOPT stage for the sphere_nlp methods.
+        Wall-clock limit of each sphere_nlp run.
     progress : callable(str), optional
         Receives one line per row, and one per rejected mesh before anything runs.
     save_maps : bool
@@ -311,7 +311,7 @@ def main(argv=None):
                         help="also write each valid map's sphere (MESH.METHOD.obj, with texture "
                              "coordinates) and picture (MESH.METHOD.png) into DIR")
     parser.add_argument("--max-time", type=float, metavar="SECONDS",
-                        help="wall-clock limit per IPOPT stage for the sphere_nlp methods")
+                        help="wall-clock limit of each sphere_nlp run")
     parser.add_argument("-q", "--quiet", action="store_true", help="print only errors")
     try:
         args = parser.parse_args(argv)

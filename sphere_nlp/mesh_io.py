@@ -4,6 +4,7 @@ Every writer goes to a temporary file in the destination folder and renames it i
 failure or Ctrl-C never leaves a partial file, and an existing file is replaced only by a finished one.
 """
 
+import codecs
 import json
 import os
 import tempfile
@@ -38,19 +39,84 @@ def load_mesh(path):
         raise errors.UnreadableMeshError("cannot read %s: no such file" % path)
     if not path.is_file():
         raise errors.UnreadableMeshError("cannot read %s: not a file" % path)
-    if path.stat().st_size == 0:
-        raise errors.UnreadableMeshError("cannot read %s: the file is empty" % path)
-    suffix = path.suffix.lower()
-    if suffix == ".off":
-        vertices, faces = read_off(path)
-    elif suffix == ".obj":
-        vertices, faces = read_obj(path)
-    else:
-        vertices, faces = _load_with_trimesh(path)
+    try:
+        if path.stat().st_size == 0:
+            raise errors.UnreadableMeshError("cannot read %s: the file is empty" % path)
+        suffix = path.suffix.lower()
+        # The first bytes decide whether the file can be this format at all, before a large file is
+        # parsed (a 50 MB file of digits named .off took 15 s and 1.9 GB to reject).
+        _check_header(path, suffix)
+        if suffix == ".off":
+            vertices, faces = read_off(path)
+        elif suffix == ".obj":
+            vertices, faces = read_obj(path)
+        else:
+            vertices, faces = _load_with_trimesh(path)
+    except OSError as exc:                      # unreadable (permissions, I/O error, ...)
+        raise errors.UnreadableMeshError("cannot read %s: %s" % (path, exc.strerror or exc)) from None
     if len(faces) == 0 or len(vertices) == 0:
         raise errors.UnreadableMeshError("cannot read %s as a mesh: it contains no triangles "
                                          "(empty or truncated?)" % path)
     return vertices, faces
+
+
+# Bytes read to recognise a file's format (a text header, or a PLY header up to end_header).
+HEADER_BYTES = 1 << 16
+# OBJ statements sphere_nlp knows (v and f are read, the others skipped).
+OBJ_STATEMENTS = ("v", "f", "vt", "vn", "vp", "g", "o", "s", "usemtl", "mtllib", "l", "p", "cstype",
+                  "deg", "curv", "surf", "end")
+
+
+def _decode(data):
+    """Text of a file's bytes: UTF-8 (with or without a byte-order mark), UTF-16/32 with a BOM, or
+    Latin-1 for anything else. A BOM must not become part of the first word (an OBJ's first ``v``
+    line would be skipped and every face index shift)."""
+    for bom, codec in ((codecs.BOM_UTF32_LE, "utf-32"), (codecs.BOM_UTF32_BE, "utf-32"),
+                       (codecs.BOM_UTF8, "utf-8-sig"), (codecs.BOM_UTF16_LE, "utf-16"),
+                       (codecs.BOM_UTF16_BE, "utf-16")):
+        if data.startswith(bom):
+            return data.decode(codec, "replace")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if exc.start >= len(data) - 3:           # a header cut inside a multi-byte character
+            return data[:exc.start].decode("utf-8")
+        return data.decode("latin-1")
+
+
+def _check_header(path, suffix):
+    """Reject a file whose first bytes cannot start a mesh of its format (cheap, bounded memory)."""
+    with open(path, "rb") as handle:
+        head = handle.read(HEADER_BYTES)
+        size = os.fstat(handle.fileno()).st_size
+    if suffix in (".off", ".obj"):
+        if b"\0" in head and not head.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+            raise errors.UnreadableMeshError("cannot read %s: not a text %s file (binary data)"
+                                             % (path, suffix[1:].upper()))
+        lines = [line.split("#", 1)[0].split() for line in _decode(head).splitlines()]
+        if size > len(head):
+            lines = lines[:-1]                  # the last line may be cut
+        words = [w for w in lines if w]
+        if suffix == ".off":
+            if words and not words[0][0].upper().endswith("OFF"):
+                raise errors.UnreadableMeshError("cannot read %s: not an OFF file (it starts with %r, not an "
+                                                 "OFF header)" % (path, words[0][0][:20]))
+        elif size > len(head) and not any(w[0] in OBJ_STATEMENTS for w in words):
+            raise errors.UnreadableMeshError("cannot read %s: not an OBJ file (no v or f lines in its first "
+                                             "%d KB)" % (path, HEADER_BYTES >> 10))
+    elif suffix == ".ply":
+        if not head.startswith(b"ply"):
+            raise errors.UnreadableMeshError("cannot read %s: not a PLY file (it does not start with 'ply')"
+                                             % path)
+        if head.find(b"end_header") < 0:
+            raise errors.UnreadableMeshError("cannot read %s as a mesh: the PLY header has no end_header "
+                                             "(in its first %d KB)" % (path, HEADER_BYTES >> 10))
+    elif suffix == ".stl":
+        # Binary STL: an 80-byte header, a triangle count, 50 bytes per triangle; ASCII STL: "solid".
+        binary_ok = size >= 84 and size == 84 + 50 * int.from_bytes(head[80:84], "little")
+        if not binary_ok and not head.lstrip().lower().startswith(b"solid"):
+            raise errors.UnreadableMeshError("cannot read %s: not an STL file (neither ASCII, starting with "
+                                             "'solid', nor binary with a consistent triangle count)" % path)
 
 
 def _load_with_trimesh(path):
@@ -77,7 +143,7 @@ def _check_ply_counts(path, n_vertices, n_faces):
     triangulates polygons; both show up as a face count different from the header's.
     """
     with open(path, "rb") as handle:
-        head = handle.read(1 << 16)
+        head = handle.read(HEADER_BYTES)
     end = head.find(b"end_header")
     if end < 0:
         raise errors.UnreadableMeshError("cannot read %s as a mesh: PLY header has no end_header" % path)
@@ -103,14 +169,9 @@ def _check_ply_counts(path, n_vertices, n_faces):
 def _text_lines(path, kind):
     """The file's lines, with comments (from '#') stripped; rejects binary content."""
     data = path.read_bytes()
-    if b"\0" in data:
+    if b"\0" in data and not data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
         raise errors.UnreadableMeshError("cannot read %s: not a text %s file (binary data)" % (path, kind))
-    # A UTF-8 byte-order mark is not part of the first line: left in, it hid the first "v" or "OFF".
-    data = data[3:] if data.startswith(b"\xef\xbb\xbf") else data
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError:
-        text = data.decode("latin-1")
+    text = _decode(data)
     return [line.split("#", 1)[0] for line in text.splitlines()]
 
 
@@ -196,7 +257,12 @@ def read_off(path):
         if size != 3:
             polygons.append((i, size))
             continue
-        faces[i] = indices
+        try:
+            faces[i] = indices
+        except OverflowError:                   # an index beyond 64 bits cannot name a vertex
+            raise errors.FaceIndexError("%s: line %d: face %d refers to vertex %s, which does not exist "
+                                        "(the file has %d vertices)"
+                                        % (path, line_number, i, _too_large(indices), n_vertices)) from None
     _reject_polygons(path, polygons)
     return vertices, faces
 
@@ -254,7 +320,14 @@ def read_obj(path):
         raise errors.UnreadableMeshError("cannot read %s: not an OBJ file (no v or f lines)" % path)
     _reject_polygons(path, polygons)
     vertices = np.asarray(vertices, float).reshape(-1, 3)
-    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    try:
+        faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    except OverflowError:                       # an index beyond 64 bits cannot name a vertex
+        i = next(i for i, f in enumerate(faces) if _too_large(f) is not None)
+        raise errors.FaceIndexError("%s: line %d: face %d refers to vertex %s, which does not exist "
+                                    "(the file has %d vertices, numbered from 1)"
+                                    % (path, face_lines[i], i, _too_large(faces[i]) + 1,
+                                       len(vertices))) from None
     bad = (faces < 0) | (faces >= len(vertices))
     if bad.any():
         i = int(np.flatnonzero(bad.any(axis=1))[0])
@@ -262,6 +335,11 @@ def read_obj(path):
                                     "(the file has %d vertices, numbered from 1)"
                                     % (path, face_lines[i], i, len(vertices)))
     return vertices, faces
+
+
+def _too_large(indices):
+    """The first index that does not fit in 64 bits, or None."""
+    return next((k for k in indices if not -2 ** 63 <= k < 2 ** 63), None)
 
 
 def _reject_polygons(path, polygons):
@@ -272,26 +350,116 @@ def _reject_polygons(path, polygons):
                                          % (path, len(polygons), i, size))
 
 
+# The open output_transaction()'s staged files, [(temporary path, destination)], or None.
+_staged = None
+
+
 @contextmanager
 def atomic_output(path, mode="w"):
-    """Open a temporary file beside ``path``; rename it to ``path`` only if the block succeeds."""
+    """Open a temporary file beside ``path``; rename it to ``path`` only if the block succeeds.
+
+    Inside :func:`output_transaction` the finished temporary file is staged instead, and renamed
+    together with the transaction's other outputs when the transaction ends.
+    """
     path = Path(path)
     directory = path.parent if str(path.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".tmp", dir=directory)
-    # mkstemp makes the file private (0600); give it the permissions a plain open() would.
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
     try:
+        # mkstemp makes the file private (0600); give it the permissions a plain open() would.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         with os.fdopen(fd, mode) as handle:
             yield handle
-        os.replace(tmp, path)
+        if _staged is not None:
+            _staged.append((tmp, path))
+        else:
+            os.replace(tmp, path)
     except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
+        _remove_quietly(tmp)
         raise
+
+
+def _remove_quietly(path):
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
+
+
+@contextmanager
+def output_transaction():
+    """Write several outputs all together or not at all.
+
+    Every :func:`atomic_output` inside the block (``write_mesh``, ``write_json``, ``write_npz``, the
+    picture) goes to a temporary file beside its destination. Only when the whole block has
+    succeeded are they renamed into place, one after the other with signals deferred
+    (:func:`sphere_nlp.interrupts.defer_signals`); if a rename fails or a signal arrived meanwhile,
+    the renamed ones are undone (an existing file comes back from a hard link kept until the end)
+    and the exception is raised. On any exception, the temporary files are removed: nothing is
+    created or replaced. Nested transactions join the outer one.
+
+    Example
+    -------
+    >>> import tempfile, os
+    >>> from sphere_nlp.shapes import octahedron
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     try:
+    ...         with output_transaction():
+    ...             write_mesh(os.path.join(d, "a.off"), *octahedron())
+    ...             raise RuntimeError("a later step failed")
+    ...     except RuntimeError:
+    ...         pass
+    ...     os.listdir(d)
+    []
+    """
+    global _staged
+    if _staged is not None:
+        yield
+        return
+    staged = _staged = []
+    try:
+        yield
+    except BaseException:
+        _staged = None
+        for tmp, _ in staged:
+            _remove_quietly(tmp)
+        raise
+    _staged = None
+    _commit(staged)
+
+
+def _commit(staged):
+    """Rename staged files into place, all or none (see :func:`output_transaction`)."""
+    from . import interrupts
+
+    done = []                                   # (destination, backup of the file it replaced or None)
+    with interrupts.defer_signals():
+        try:
+            for tmp, path in staged:
+                backup = None
+                if os.path.lexists(path):
+                    backup = tempfile.mktemp(prefix="." + path.name + ".", suffix=".tmp", dir=path.parent)
+                    try:
+                        os.link(path, backup, follow_symlinks=False)
+                    except OSError:             # no hard links here: that file cannot come back
+                        backup = False
+                os.replace(tmp, path)
+                done.append((path, backup))
+            interrupts.raise_if_interrupted()
+            interrupts.committed()
+        except BaseException:
+            for path, backup in reversed(done):
+                if backup:
+                    os.replace(backup, path)
+                elif backup is None:            # the file did not exist before
+                    _remove_quietly(path)
+            for tmp, _ in staged[len(done):]:
+                _remove_quietly(tmp)
+            raise
+        for _, backup in done:
+            if backup:
+                _remove_quietly(backup)
 
 
 def check_mesh_path(path):

@@ -38,6 +38,9 @@ the Lagrangian Hessian stays block-diagonal per triangle (multiplying it out cou
 triangles of every edge and is much slower).
 """
 
+import contextlib
+import os
+import sys
 import time
 from dataclasses import dataclass
 
@@ -45,6 +48,7 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
+from . import interrupts
 from .settings import DEFAULT_SETTINGS
 
 FORMULATIONS = ("log-chord", "substituted", "faithful")
@@ -130,6 +134,61 @@ class IpoptRun:
     def finite(self):
         """Whether the end point is finite."""
         return bool(np.isfinite(self.x).all())
+
+
+def check_ipopt_options(options):
+    """Raise ValueError naming the first IPOPT option IPOPT rejects (unknown name, wrong type or value).
+
+    IPOPT is asked on a one-variable problem, with its complaint (an option dump on stdout) silenced,
+    so that a bad option is a usage error before any mesh is solved.
+
+    Example
+    -------
+    >>> check_ipopt_options({"tol": 1e-9})
+    >>> check_ipopt_options({"bogus_option": 1})
+    Traceback (most recent call last):
+    ...
+    ValueError: IPOPT rejects option bogus_option=1 (no such option)
+    """
+    x = ca.SX.sym("x")
+    for name, value in dict(options).items():
+        if not isinstance(name, str):
+            raise ValueError("IPOPT option names are strings, not %r" % (name,))
+        try:
+            with _stdout_silenced():
+                ca.nlpsol("check", "ipopt", {"x": x, "f": x * x},
+                          {"print_time": False, "ipopt": {name: value, "print_level": 0, "sb": "yes"}})
+        except (RuntimeError, TypeError, NotImplementedError) as exc:
+            text = str(exc)
+            reason = ("no such option" if "No such IPOPT option" in text else
+                      "wrong type" if "type mismatch" in text else "invalid value")
+            raise ValueError("IPOPT rejects option %s=%r (%s)" % (name, value, reason)) from None
+
+
+@contextlib.contextmanager
+def _stdout_silenced():
+    """Send standard output (where IPOPT and CasADi print) to /dev/null inside the block."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+            # CasADi's Python build prints through sys.stdout, IPOPT's own journal through fd 1.
+            with contextlib.redirect_stdout(null):
+                yield
+    finally:
+        _flush_c_stdio()                    # IPOPT's buffered text goes to /dev/null, not later to stdout
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _flush_c_stdio():
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):
+        pass
 
 
 def _sparse_dm(matrix):
@@ -221,6 +280,8 @@ class _ProgressCallback(ca.Callback):
         if self.abort_violation is not None and self.iterations_above >= self.abort_iterations:
             self.aborted = True
             return [1]                      # non-zero asks IPOPT to stop
+        if interrupts.stop_requested():     # a signal, or the run's deadline (see interrupts)
+            return [1]
         return [0]
 
 
@@ -631,6 +692,12 @@ class _AngleProblem:
         if lam_x0 is not None:
             args["lam_x0"] = lam_x0
         start = time.perf_counter()
+        if interrupts.deadline_passed():
+            # The run's time is up (interrupts.deadline): report the limit without starting IPOPT.
+            x0 = np.array(x0, dtype=float).ravel()
+            return IpoptRun(x0=x0, x=x0.copy(), lam_g=np.zeros(len(lbg)), lam_x=np.zeros(len(x0)),
+                            objective=float("nan"), status="Maximum_WallTime_Exceeded", iterations=0,
+                            time_s=0.0, build_s=build_s, stats={})
         if self._numeric is not None:
             self._numeric.modify_hessian = modify_hessian
         try:
@@ -638,10 +705,14 @@ class _AngleProblem:
         finally:
             if self._numeric is not None:
                 self._numeric.modify_hessian = None
+        # IPOPT swallows what its callbacks raise; a signal it caught ends the run here.
+        interrupts.raise_if_interrupted()
         stats = solver.stats()
         status = stats.get("return_status", "unknown")
         if callback.aborted:
             status = "Diverged"
+        elif status == "User_Requested_Stop" and interrupts.deadline_passed():
+            status = "Maximum_WallTime_Exceeded"
         return IpoptRun(x0=np.array(x0, dtype=float).ravel(), x=np.asarray(out["x"]).ravel(),
                         lam_g=np.asarray(out["lam_g"]).ravel(), lam_x=np.asarray(out["lam_x"]).ravel(),
                         objective=float(out["f"]), status=status, iterations=int(stats.get("iter_count", 0)),

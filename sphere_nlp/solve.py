@@ -44,6 +44,7 @@ from fractions import Fraction
 
 import numpy as np
 
+from . import interrupts
 from .nlp import DEFAULT_FORMULATION, AngleNLP, LogChordNLP
 from .errors import UsageError
 from .settings import DEFAULT_SETTINGS, SolverSettings
@@ -51,6 +52,10 @@ from .starts import initial_point
 
 # What a margin stage stopped by the caller's limits yields (solve_angles's on_limit).
 ON_LIMIT = ("fail", "project")
+# The projection of a stage stopped by max_time (on_limit="project") may run past the run's
+# deadline (interrupts.deadline) by a fifth of max_time plus 5 s.
+PROJECTION_GRACE_FRACTION = 0.2
+PROJECTION_GRACE_S = 5.0
 
 
 @dataclass
@@ -169,7 +174,8 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     max_iter : int, optional
         IPOPT iteration limit per stage.
     max_time : float, optional
-        Wall-clock limit in seconds per stage.
+        Wall-clock limit in seconds per stage (the caller's whole-run limit is
+        :func:`sphere_nlp.interrupts.deadline`, enforced inside every stage).
     on_limit : {"fail", "project"}
         What a log-chord margin stage stopped by ``max_iter`` or ``max_time`` yields: a failed
         solve (default), or its iterate projected onto the constraints
@@ -333,6 +339,10 @@ def _solve_log_chord(context, on_limit):
         projected = _projected_solution(context, nlp, run, log_u_lower)
         if projected.success:
             return projected
+    if interrupts.deadline_passed():
+        # The run's time is up (interrupts.deadline): no fallback stage, each would be built only
+        # to stop at once (bipyramid(1000): 6.7 s of building after the limit).
+        return _solution(context, *nlp.unpack(run.x), run)
     with_margin = True
     if context.diverged(nlp, run):
         # The direct margin stage ran away from the solution set (hand_closed.obj original-areas:
@@ -495,10 +505,14 @@ def all_constraints_stage(context, obtuse, x_start):
 
 def _projected_solution(context, nlp, stopped, log_u_lower):
     """The AngleSolution of a stage stopped by the caller's limits, projected onto the constraints."""
-    projection = project_onto_constraints(context.connectivity, context.targets, nlp, stopped.x,
-                                          context.formulation, context.dropped, context.options, log_u_lower,
-                                          context.window, progress=context.stage_progress("projection"),
-                                          settings=context.settings, stages=context.stages)
+    # Past the run's deadline (interrupts.deadline) the projection gets a short grace of its own.
+    grace = PROJECTION_GRACE_FRACTION * float(context.options.get("max_wall_time", 0.0)) + PROJECTION_GRACE_S
+    with interrupts.extended_deadline(grace):
+        projection = project_onto_constraints(context.connectivity, context.targets, nlp, stopped.x,
+                                              context.formulation, context.dropped, context.options,
+                                              log_u_lower, context.window,
+                                              progress=context.stage_progress("projection"),
+                                              settings=context.settings, stages=context.stages)
     return _solution(context, *nlp.unpack(projection.x), projection, stopped_status=stopped.status)
 
 

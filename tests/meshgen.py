@@ -165,3 +165,18 @@ def _try_random_flip(P, F, rng, min_angle):
         return False
     F[i], F[k] = new
     return True
+
+
+def bipyramid(n=1000, height=1.0):
+    """Two apexes over a regular n-gon: n + 2 vertices, both apexes of degree n.
+
+    The stress case for high vertex degree (a finely segmented cap): each apex's angle sum (6) and
+    its n edge constraints (8) all share the apex's corners.
+    """
+    angles = 2 * np.pi * np.arange(n) / n
+    ring = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(n)])
+    V = np.vstack([ring, [[0, 0, height], [0, 0, -height]]])
+    k = np.arange(n)
+    top = np.column_stack([k, (k + 1) % n, np.full(n, n)])
+    bottom = np.column_stack([(k + 1) % n, k, np.full(n, n + 1)])
+    return V, np.vstack([top, bottom])

@@ -139,7 +139,7 @@ def test_ctrl_c_during_the_solve_leaves_the_existing_output(tmp_path, capsys, mo
 
     monkeypatch.setattr(sphere_nlp.api, "solve_angles", interrupted_solve)
     status, stderr = run_cli(capsys, ellipsoid_file, "-o", out, "-q")
-    assert status == 130 and stderr.strip() == "sphere-nlp: interrupted; nothing written"
+    assert status == 130 and stderr.strip() == "sphere-nlp: interrupted; nothing written (SIGINT)"
     assert out.read_text() == PRECIOUS and leftovers(tmp_path) == []
 
 
