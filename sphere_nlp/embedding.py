@@ -57,6 +57,59 @@ def planar_tutte(connectivity, weights, outer_face):
     return P
 
 
+def punctured_embedding(connectivity, vertex=None):
+    """Valid spherical positions with one vertex at the north pole and its neighbours on the equator.
+
+    The vertex's 1-ring goes, evenly spaced, onto the unit circle; the rest is a uniform Tutte
+    embedding inside it (valid: a convex boundary, Tutte 1963), mapped to the southern hemisphere by
+    the inverse stereographic projection, which keeps planar orientations; the removed vertex's
+    triangles fill the northern hemisphere. Default ``vertex``: one of largest degree, whose ring,
+    with a triangle as the boundary (:func:`convex_embedding`), shrinks exponentially along
+    itself: a degree-1,000 cap falls below double precision.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> from sphere_nlp.connectivity import build_connectivity
+    >>> from sphere_nlp.certify import certify
+    >>> V, F = octahedron()
+    >>> certify(punctured_embedding(build_connectivity(F, len(V))), F).valid
+    True
+    """
+    faces = connectivity.faces
+    n = connectivity.n_vertices
+    if vertex is None:
+        vertex = int(np.argmax(connectivity.vertex_degree))
+    # The ring in order: each face (vertex, a, b), rotated to start at the vertex, gives a -> b.
+    at = np.flatnonzero((faces == vertex).any(axis=1))
+    rotated = [np.roll(f, -int(np.flatnonzero(f == vertex)[0])) for f in faces[at]]
+    following = {int(a): int(b) for _, a, b in rotated}
+    ring = [next(iter(following))]
+    while len(ring) < len(following):
+        ring.append(following[ring[-1]])
+    ring = np.array(ring)
+    # Clockwise in the plane, so that the triangles inside come out counter-clockwise as the
+    # outer face does in planar_tutte; the orientation is checked below anyway.
+    angles = -2 * np.pi * np.arange(len(ring)) / len(ring)
+    plane = np.zeros((n, 2))
+    plane[ring] = np.c_[np.cos(angles), np.sin(angles)]
+    e = connectivity.edges
+    W = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                      shape=(n, n)).tocsr()
+    L = (sp.diags(np.asarray(W.sum(1)).ravel()) - W).tocsr()
+    inner = np.setdiff1d(np.arange(n), np.r_[ring, vertex])
+    if len(inner):
+        rhs = -L[inner][:, ring] @ plane[ring]
+        plane[inner] = spla.splu(L[inner][:, inner].tocsc()).solve(rhs)
+    r2 = np.sum(plane ** 2, axis=1, keepdims=True)
+    X = np.c_[2 * plane, r2 - 1] / (r2 + 1)
+    X[vertex] = (0.0, 0.0, 1.0)
+    from .certify import signed_solid_angles
+    if np.sum(signed_solid_angles(X, faces)) < 0:
+        X[:, 0] = -X[:, 0]
+    return X
+
+
 def convex_lift(connectivity, planar, weights, outer_face):
     """Maxwell-Cremona heights for a planar equilibrium framework, (n,) array.
 

@@ -97,11 +97,16 @@ def embedding_start(connectivity, vertices=None, weights=None):
     -------
     (positions, kind) with kind "embedding" or "embedding-uncentred".
     """
-    from .embedding import convex_embedding, mobius_centre
+    from .embedding import convex_embedding, mobius_centre, punctured_embedding
 
+    faces = connectivity.faces
     positions = convex_embedding(connectivity, vertices, weights="uniform")
+    if not certify(positions, faces).valid:
+        # Lost to floating point (a degree-1,000 cap's ring shrinks exponentially): the embedding
+        # around its largest-degree vertex instead, which places that ring evenly on the equator.
+        positions = punctured_embedding(connectivity)
     centred = mobius_centre(positions, weights)
-    if certify(centred, connectivity.faces).valid:
+    if certify(centred, faces).valid:
         return centred, "embedding"
     return positions, "embedding-uncentred"
 

@@ -302,6 +302,22 @@ def test_max_time_bounds_the_whole_run_not_each_stage():
     assert elapsed < limit + 2 * slowest_iteration + result.timings["unfold"] + result.timings["certify"] + 0.5
 
 
+def test_a_vertex_of_degree_1000_keeps_the_kkt_system_sparse_and_maps():
+    # A finely segmented cap: both apexes of degree 1,000. The three vertex sums (7) left out are
+    # at ordinary vertices (an apex's penalty Hessian alone had 8 million nonzeros), and the start
+    # survives floating point, so the whole run takes about a second.
+    from sphere_nlp.connectivity import build_connectivity
+    from sphere_nlp.solve import independent_vertices
+
+    V, F = meshgen.bipyramid(1000)
+    degree = build_connectivity(F, len(V)).vertex_degree
+    assert degree[independent_vertices(V / np.linalg.norm(V, axis=1, keepdims=True), degree)].max() == 4
+    result = sphere_nlp.parameterize((V, F))
+    assert result.certificate.valid and result.max_constraint_violation < 1e-8
+    top, bottom = result.vertices[1000:]
+    assert top @ bottom < -1 + 1e-6              # the symmetric map: apexes antipodal
+
+
 # --- 6. exit codes and one-line messages ----------------------------------------------------------
 
 @pytest.mark.parametrize("name,text", [

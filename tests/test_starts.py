@@ -66,3 +66,19 @@ def test_initial_points_are_valid_triangulations_and_given_positions_are_checked
     linear = starts.initial_point(c, targets, "linear")
     assert linear.kind == "linear" and linear.positions is None
     np.testing.assert_allclose(constraint_residuals(c, linear.angles, linear.excess)["vertex"], 0, atol=1e-10)
+
+
+def test_a_degree_1000_cap_gets_a_valid_start_with_its_ring_on_the_equator():
+    from meshgen import bipyramid
+    from sphere_nlp.embedding import convex_embedding, punctured_embedding
+
+    V, F = bipyramid(1000)
+    c = build_connectivity(F, len(V))
+    # The triangle-bounded embedding loses the ring to floating point ...
+    assert not certify(convex_embedding(c, V, weights="uniform"), F).valid
+    # ... the one around the apex places it exactly: apexes at the poles, the ring on the equator.
+    X = punctured_embedding(c)
+    assert certify(X, F).valid
+    assert np.allclose(np.abs(X[1000:, 2]), 1.0) and np.abs(X[:1000, 2]).max() < 1e-12
+    positions, kind = starts.starting_positions(c, V)
+    assert certify(positions, F).valid and kind.startswith("embedding")
