@@ -83,7 +83,7 @@ class AngleSolution:
         projected onto the constraints (stage "projection"), feasible but not optimal; ``status``
         is then the stopped stage's (e.g. "Maximum_WallTime_Exceeded").
     floor_corners, floor_triangles : int
-        Log-chord: corners whose u, triangles whose e end within 1% of their floor
+        Log-chord: corners whose u, triangles whose e end at, below or within 1% of their floor
         (``corner_floor`` x beta, or the margin; ``area_floor`` x 4 pi / t).
     """
 
@@ -459,8 +459,9 @@ def margin_stage(context, nlp, x_start):
     always), which an equality stage chases towards log u = -inf before the margin stage starts
     again anyway (docs/tuning.md, "angle_mode_excess_window"). Corners already below the margin at
     ``x_start`` keep their own size less 10% as bound (:func:`margin_restart`). The floors
-    (:func:`floor_bounds`) are the margin of each corner and a lower bound on each log e; a start
-    that breaks one by more than ``max_margin_lift`` in the log keeps its own size less 10% as bound.
+    (:func:`floor_bounds`) are the margin of each corner and a lower bound on each log e; a corner
+    of the start below its floor by more than ``max_margin_lift`` in the log keeps its own size less
+    10% as bound, a triangle below the area floor is lifted to it (:func:`area_floor_restart`).
 
     Returns
     -------
