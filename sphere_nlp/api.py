@@ -15,11 +15,12 @@ import numpy as np
 from . import errors, interrupts
 from .certify import Certificate, certify, spherical_angles
 from .repair import prepare_mesh
-from .metrics import distortion_summary
+from .metrics import distortion_summary, usability_summary
 from .mesh_io import (check_mesh_path, load_mesh, write_image, write_json, write_material, write_mesh,
                       write_npz)
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, status_kind
-from .solve import ON_LIMIT, solve_angles
+from .settings import DEFAULT_SETTINGS
+from .solve import check_floors, ON_LIMIT, solve_angles
 from .targets import MODES, make_targets
 from .texture import checker_image, spherical_uv, split_at_seams
 from .unfold import unfold
@@ -108,6 +109,15 @@ class SphericalParameterization:
     start : str
         The solve's starting point: "conformal", "conformal-untangled", "embedding",
         "embedding-uncentred", "linear" or "given" (positions passed as ``start``).
+    corner_weighting : str
+        The angle term's corner weighting ("relative" or "uniform").
+    floor_corners, floor_triangles : int
+        Corners and triangles that end on their floor (``corner_floor``, ``area_floor``; within
+        1% of it).
+    recovery : dict or None
+        Set when the solved angles could not be placed in double precision (the certificate
+        failed) and the solve was run again with a higher area floor: ``reason`` (the first
+        certificate's), ``area_floor`` (the one used), ``solved``, ``certified``.
     """
 
     vertices: np.ndarray
@@ -135,6 +145,10 @@ class SphericalParameterization:
     unfold_info: dict = field(default_factory=dict)
     peak_rss_mb: float = 0.0
     start: str = ""
+    corner_weighting: str = "uniform"
+    floor_corners: int = 0
+    floor_triangles: int = 0
+    recovery: dict = None
 
     def __repr__(self):
         return ("SphericalParameterization(%d vertices, target=%r, status=%r, certified=%s, %.2f s)"
@@ -255,6 +269,13 @@ class SphericalParameterization:
         """
         return distortion_summary(_unit_size(self.input_vertices), self.vertices, self.faces)
 
+    def usability(self):
+        """The independent check of :func:`sphere_nlp.metrics.usability_summary`: worst
+        quasi-conformal ratio, corners below 0.1 x their target, smallest spherical triangle over
+        the mean, mean angle distortion and mean |log area ratio| (input centred and scaled as in
+        :meth:`distortion`)."""
+        return usability_summary(_unit_size(self.input_vertices), self.vertices, self.faces, self.target_angles)
+
     def write_png(self, path, measure=None, view=None):
         """Write a PNG: the input mesh and the sphere coloured by distortion, and a checkerboarded mesh.
 
@@ -293,6 +314,11 @@ class SphericalParameterization:
             "target": self.target,
             "formulation": self.formulation,
             "start": self.start,
+            "corner_weighting": self.corner_weighting,
+            "floor_corners": int(self.floor_corners),
+            "floor_triangles": int(self.floor_triangles),
+            "recovery": self.recovery,
+            "usability": self.usability() if np.isfinite(self.vertices).all() else None,
             "success": bool(self.success),
             "converged": bool(self.converged),
             "status": self.status,
@@ -474,7 +500,7 @@ def _bounded(function):
 def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weight=None,
                  target_angles=None, target_excess=None, formulation=DEFAULT_FORMULATION, max_iter=None,
                  max_time=None, on_limit="fail", ipopt_options=None, progress=None, on_stage=None, start=None,
-                 check=True, settings=None):
+                 check=True, settings=None, corner_weighting=None, corner_floor=None, area_floor=None):
     """Map a closed genus-0 triangle mesh onto the unit sphere without overlaps.
 
     Parameters
@@ -522,6 +548,21 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         result is returned with ``success=False`` instead.
     settings : SolverSettings, optional
         The solver's tuning constants (:class:`sphere_nlp.settings.SolverSettings`; docs/tuning.md).
+    corner_weighting : {"relative", "uniform"}, optional
+        How the angle term weighs the corners: relative errors (weights 1 / beta^2, as in
+        angle-based flattening; default in the angle modes) or the paper's (9) verbatim
+        ("uniform"; default in the area modes).
+        See :mod:`sphere_nlp.targets`.
+    corner_floor : float, optional
+        Log-chord only: every spherical corner keeps u = alpha - e/2 >= this fraction of its target
+        angle (a bound; 0 disables it; default ``settings.corner_floor``, in the area modes
+        ``settings.area_mode_corner_floor``).
+    area_floor : float, optional
+        Log-chord only: every spherical triangle keeps at least this fraction of the mean area
+        4 pi / t (0 disables; default ``settings.area_floor``). ``floor_corners`` and
+        ``floor_triangles`` of the result count those that end on their floor. A solve whose
+        angles cannot be placed in double precision is run once more with an area floor 1000
+        times higher (at least 1e-10), reported in ``recovery``.
 
     Returns
     -------
@@ -565,6 +606,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     """
     check_run_options(target, formulation, on_limit, max_iter, max_time, angle_weight, area_weight,
                       ipopt_options)
+    check_floors(corner_floor, area_floor)
     timings = {}
     clock = time.perf_counter()
     run_started = clock
@@ -587,14 +629,15 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     # overflow, underflow and cancellation that extreme coordinates would cause.
     targets = make_targets(target, prepared.normalised_vertices, faces, connectivity.vertex_degree,
                            angle_weight=angle_weight, area_weight=area_weight,
-                           target_angles=target_angles, target_excess=target_excess)
+                           target_angles=target_angles, target_excess=target_excess,
+                           corner_weighting=corner_weighting)
     if start is not None and not isinstance(start, str):
         start = _start_in_repaired_numbering(start, prepared)
     lap("build", "solve")
     solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
                             max_iter=max_iter, max_time=max_time, progress=progress,
                             vertices=prepared.normalised_vertices, start=start, on_limit=on_limit,
-                            settings=settings)
+                            settings=settings, corner_floor=corner_floor, area_floor=area_floor)
     lap("solve", "unfold")
     # Symbolic derivatives and IPOPT set-up happen inside the solve; book them as build time.
     build_s = sum(s["build_s"] for s in solution.stages)
@@ -609,6 +652,25 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         positions, unfold_info = sphere_positions(connectivity, solution.angles, solution.excess)
     lap("unfold", "certify")
     certificate = certify(positions, faces)
+    recovery = None
+    if formulation == "log-chord" and solution.success and not certificate.valid:
+        # Solved angles that double precision cannot place (triangles too small to unfold): solve
+        # again with an area floor 1000 times higher (at least 1e-10 of the mean), once.
+        used = (settings or DEFAULT_SETTINGS).area_floor if area_floor is None else float(area_floor)
+        tighter = max(1e3 * used, 1e-10)
+        retry = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
+                             max_iter=max_iter, max_time=max_time, progress=progress,
+                             vertices=prepared.normalised_vertices, start=start, on_limit=on_limit,
+                             settings=settings, corner_floor=corner_floor, area_floor=tighter)
+        recovery = {"reason": certificate.reason, "area_floor": tighter, "solved": bool(retry.success)}
+        if retry.success:
+            retry.stages = solution.stages + [dict(stage, name="recovery-" + stage["name"])
+                                              for stage in retry.stages]
+            retry.iterations += solution.iterations
+            solution = retry
+            positions, unfold_info = sphere_positions(connectivity, solution.angles, solution.excess)
+            certificate = certify(positions, faces)
+        recovery["certified"] = bool(certificate.valid)
     angle_error = max_angle_error(positions, faces, solution.angles)
     lap("certify")
     timings["total"] = time.perf_counter() - run_started
@@ -622,7 +684,9 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         certificate=certificate, vertex_map=prepared.vertex_map, solved=solution.success,
         converged=solution.converged,
         stages=solution.stages, timings=timings, repairs=prepared.repairs,
-        unfold_info=unfold_info, peak_rss_mb=peak_rss_mb(), start=solution.start)
+        unfold_info=unfold_info, peak_rss_mb=peak_rss_mb(), start=solution.start,
+        corner_weighting=targets.corner_weighting, floor_corners=solution.floor_corners,
+        floor_triangles=solution.floor_triangles, recovery=recovery)
     if check and not solution.success:
         raise errors.SolveError(solve_failure_message(solution.status, solution.iterations), result)
     if check and not certificate.valid:

@@ -20,7 +20,7 @@ from . import __version__, errors, interrupts
 from .mesh_io import check_mesh_path, output_transaction
 from .nlp import FORMULATIONS
 from .solve import ON_LIMIT
-from .targets import MODES
+from .targets import CORNER_WEIGHTINGS, MODES
 
 # Three runnable examples (tests/test_ux.py runs each of them).
 EXAMPLES = """examples:
@@ -77,6 +77,13 @@ def build_parser():
     method.add_argument("--area-weight", type=float, metavar="W", help="weight of the area term")
     method.add_argument("--formulation", default="log-chord", choices=FORMULATIONS, metavar="F",
                         help="log-chord (default), substituted or faithful (the paper verbatim)")
+    method.add_argument("--corner-weighting", choices=CORNER_WEIGHTINGS, default=None,
+                        help="angle term: relative errors, weights 1/beta^2 (default in the angle modes), "
+                             "or uniform (the paper's (9) verbatim; default in the area modes)")
+    method.add_argument("--corner-floor", type=float, metavar="F",
+                        help="keep every spherical corner >= F x its target angle (0: off)")
+    method.add_argument("--area-floor", type=float, metavar="F",
+                        help="keep every spherical triangle >= F x the mean area 4 pi / t (0: off)")
     limits = parser.add_argument_group("solver limits (reaching one is a failure, unless --on-limit project)")
     limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit per stage (>= 1)")
     limits.add_argument("--max-time", type=float, metavar="S",
@@ -318,6 +325,8 @@ def run(args, progress):
 
     result = parameterize(str(input_path), target=args.target, angle_weight=args.angle_weight,
                           area_weight=args.area_weight, formulation=args.formulation,
+                          corner_weighting=args.corner_weighting, corner_floor=args.corner_floor,
+                          area_floor=args.area_floor,
                           max_iter=args.max_iter, max_time=args.max_time, on_limit=args.on_limit,
                           progress=progress.iteration,
                           on_stage=on_stage, check=False)

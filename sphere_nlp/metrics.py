@@ -215,3 +215,59 @@ def distortion_summary(mesh_vertices, sphere_vertices, faces):
             "min_spherical_angle_deg": _json_float(np.degrees(spherical_angles(sphere_vertices, faces).min())),
         }
     return summary
+
+
+USABILITY_KEYS = ("valid", "flipped", "qc_max", "corners_below_fraction", "min_area_ratio",
+                  "mean_abs_angle_diff_deg", "mean_abs_log_area")
+
+
+def usability_summary(mesh_vertices, sphere_vertices, faces, target_angles=None, corner_fraction=0.1):
+    """Whether a spherical map is usable for texturing and resampling, from positions alone.
+
+    An independent check of the solver's output (it reads neither the solver's angles nor its
+    bounds): a certified map can still have collapsed triangles or triangles too small for double
+    precision to place.
+
+    Parameters
+    ----------
+    mesh_vertices, sphere_vertices : (n, 3) arrays
+    faces : (t, 3) int array
+    target_angles : (t, 3) array, optional
+        The objective's target corner angles beta (default: the 3D corner angles).
+    corner_fraction : float
+        A spherical corner counts as collapsed below this fraction of its target.
+
+    Returns
+    -------
+    dict (JSON-safe)
+        ``valid``, ``flipped`` (the certificate); ``qc_max`` (worst :func:`quasi_conformal_ratio`,
+        3D triangle to chord triangle; None if some triangle is flipped); ``corners_below_fraction``
+        (spherical corners measured from the positions below ``corner_fraction`` x target);
+        ``min_area_ratio`` (smallest signed solid angle over the mean 4 pi / t); the means
+        ``mean_abs_angle_diff_deg`` and ``mean_abs_log_area`` of :func:`distortion_summary`.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> V, F = octahedron()
+    >>> s = usability_summary(V, V, F)
+    >>> s["qc_max"], s["corners_below_fraction"], round(s["min_area_ratio"], 12)
+    (1.0, 0, 1.0)
+    """
+    mesh_vertices, faces = _arrays(mesh_vertices, faces)
+    sphere_vertices = np.asarray(sphere_vertices, dtype=float)
+    if target_angles is None:
+        target_angles = corner_angles(mesh_vertices, faces)
+    summary = distortion_summary(mesh_vertices, sphere_vertices, faces)
+    qc = quasi_conformal_ratio(mesh_vertices, sphere_vertices, faces)
+    omega = signed_solid_angles(sphere_vertices, faces)
+    below = spherical_angles(sphere_vertices, faces) < corner_fraction * np.asarray(target_angles, float)
+    return {
+        "valid": summary["valid"],
+        "flipped": summary["flipped"],
+        "qc_max": _json_float(qc.max()),
+        "corners_below_fraction": int(below.sum()),
+        "min_area_ratio": _json_float(omega.min() / (4 * np.pi / len(faces))),
+        "mean_abs_angle_diff_deg": summary["mean_abs_angle_diff_deg"],
+        "mean_abs_log_area": summary["mean_abs_log_area"],
+    }

@@ -795,7 +795,7 @@ class PaperNLP(_AngleProblem):
         g_ineq = ca.vertcat(*inequalities)
 
         beta = targets.angles.ravel()
-        objective = (targets.angle_weight * ca.sumsqr(alpha - beta)
+        objective = (targets.angle_weight * ca.dot(targets.corner_weights.ravel(), (alpha - beta) ** 2)
                      + targets.area_weight * ca.sumsqr((e - targets.excess) / targets.excess_scale))
 
         return x, objective, g_eq, g_ineq
@@ -937,7 +937,7 @@ class LogChordNLP(_AngleProblem):
         dict with the per-triangle SX Functions ``triangle``, ``triangle_jacobian``,
         ``triangle_hessian`` (its ``upper`` entries), ``variable_of`` (t, 4) (each triangle's
         unknowns), ``A`` (scipy CSR), ``b``, ``parameters`` (beta (3, t), e' (1, t), obtuse flags
-        (3, t)), ``objective_rows``, ``P`` (scipy CSR: the left-out vertex sums, or None),
+        (3, t), corner weights (3, t)), ``objective_rows``, ``P`` (scipy CSR: the left-out vertex sums, or None),
         ``dropped_penalty``.
         """
         t, n = connectivity.n_faces, connectivity.n_vertices
@@ -947,6 +947,7 @@ class LogChordNLP(_AngleProblem):
         excess_target = ca.SX.sym("excess_target")
         weights = ca.SX.sym("w", width)
         obtuse = ca.SX.sym("obtuse", 3)                  # 1 at a corner flagged obtuse, else 0
+        corner_weight = ca.SX.sym("corner_weight", 3)
         u, e = ca.exp(z[:3]), ca.exp(z[3])
         alpha = u + e / 2
         # Half-angle cosine rule: sin^2(a_j/2) = sin(e/2) sin(alpha_j - e/2) / (sin alpha_k sin alpha_l).
@@ -965,11 +966,15 @@ class LogChordNLP(_AngleProblem):
             area_term = (z[3] - ca.log(excess_target)) ** 2
         else:
             area_term = ((e - excess_target) / targets.excess_scale) ** 2
-        term = targets.angle_weight * ca.sumsqr(alpha - beta) + targets.area_weight * area_term
+        # Corner weights (Targets.corner_weights): ones for the paper's (9), 1/beta^2 scaled for
+        # relative errors as in angle-based flattening.
+        term = (targets.angle_weight * ca.dot(corner_weight, (alpha - beta) ** 2)
+                + targets.area_weight * area_term)
         h_sx = ca.vertcat(term, ca.sum1(u) + e / 2 - np.pi, alpha, *log_half_chords)
-        triangle = ca.Function("sphere_nlp_triangle", [z, beta, excess_target, obtuse], [h_sx])
+        inputs = [z, beta, excess_target, obtuse, corner_weight]
+        triangle = ca.Function("sphere_nlp_triangle", inputs, [h_sx])
         jacobian_8x4 = ca.jacobian(h_sx, z)
-        triangle_jacobian = ca.Function("sphere_nlp_triangle_jac", [z, beta, excess_target, obtuse],
+        triangle_jacobian = ca.Function("sphere_nlp_triangle_jac", inputs,
                                         [ca.vec(ca.densify(jacobian_8x4))])
         hessian_4x4 = ca.densify(ca.hessian(ca.dot(weights, h_sx), z)[0])
         if hessian == "clipped":
@@ -977,7 +982,7 @@ class LogChordNLP(_AngleProblem):
             lagrangian_gradient = ca.mtimes(jacobian_8x4.T, weights)
             hessian_4x4 = hessian_4x4 - ca.diag(ca.fmin(lagrangian_gradient, 0))
         upper = [(i, j) for j in range(4) for i in range(j + 1)]          # column-major upper triangle
-        triangle_hessian = ca.Function("sphere_nlp_triangle_hess", [z, beta, excess_target, obtuse, weights],
+        triangle_hessian = ca.Function("sphere_nlp_triangle_hess", inputs + [weights],
                                        [ca.vertcat(*[hessian_4x4[i, j] for i, j in upper])])
 
         # A picks and combines entries of h (rows 8i..8i+7 hold triangle i's values).
@@ -1025,7 +1030,7 @@ class LogChordNLP(_AngleProblem):
                     upper=upper, variable_of=variable_of, d_rows=d_rows, d_cols=d_cols,
                     A=A, b=b, objective_rows=objective_rows, P=P, dropped_penalty=dropped_penalty,
                     parameters=(targets.angles.T, targets.excess.reshape(1, -1),
-                                np.asarray(obtuse_corners, dtype=float).T))
+                                np.asarray(obtuse_corners, dtype=float).T, targets.corner_weights.T))
 
     @staticmethod
     def _log_chord_graph(x, parts):

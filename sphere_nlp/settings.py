@@ -104,6 +104,18 @@ class SolverSettings:
     angle_margin : float
         The margin stage keeps every u = alpha - e/2 at least this (radians); on some meshes the
         objective's infimum is at a degenerate triangle.
+    corner_floor : float
+        Angle modes: every corner keeps u = alpha - e/2 >= this fraction of its target angle beta
+        (and >= ``angle_margin``), a plain bound in the log formulation; 0 leaves the margin alone.
+    area_mode_corner_floor : float
+        The same in the area modes.
+    area_floor : float
+        Every triangle keeps its excess >= this fraction of the mean 4 pi / t, so that double
+        precision can place it (a bound on log e); 0 disables it.
+    max_floor_lift : float
+        A triangle whose start is below the area floor by less than this in log e is lifted to it
+        (a start off the solution set), one further below keeps its own size less 10% as bound;
+        the default (inf) lifts every one, so that the floor holds at the end.
     max_margin_lift : float
         The margin stage lifts corners below the margin to it only if that changes none of them by
         more than this in log u (else it starts from its own start; see
@@ -172,6 +184,10 @@ class SolverSettings:
     max_window_rounds: int = 6
     window_growth: float = 2.0
     angle_margin: float = 1e-4
+    corner_floor: float = 0.1
+    area_mode_corner_floor: float = 0.0
+    area_floor: float = 1e-10
+    max_floor_lift: float = np.inf
     max_margin_lift: float = 1.0
     dropped_penalty: float = 100.0
     max_dropped_penalty: float = 1e6

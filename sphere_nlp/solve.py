@@ -87,6 +87,9 @@ class AngleSolution:
         for a successful one whose margin stage stopped at ``max_iter`` or ``max_time``: its iterate
         projected onto the constraints (stage "projection"), feasible but not optimal; ``status``
         is then the stopped stage's (e.g. "Maximum_WallTime_Exceeded").
+    floor_corners, floor_triangles : int
+        Log-chord: corners whose u, triangles whose e end at, below or within 1% of their floor
+        (``corner_floor`` x beta, or the margin; ``area_floor`` x 4 pi / t).
     """
 
     angles: np.ndarray
@@ -101,6 +104,8 @@ class AngleSolution:
     initial_excess: np.ndarray = None
     start: str = ""
     converged: bool = False
+    floor_corners: int = 0
+    floor_triangles: int = 0
 
 
 def constraint_residuals(connectivity, angles, excess):
@@ -145,8 +150,8 @@ def violates_inequalities(angles, excess):
 
 
 def objective_value(targets, angles, excess):
-    """Objective (9) with the weights and scaling of :mod:`sphere_nlp.targets`."""
-    return float(targets.angle_weight * np.sum((angles - targets.angles) ** 2)
+    """Objective (9) with the weights (corner weights too) and scaling of :mod:`sphere_nlp.targets`."""
+    return float(targets.angle_weight * np.sum(targets.corner_weights * (angles - targets.angles) ** 2)
                  + targets.area_weight * np.sum(((excess - targets.excess) / targets.excess_scale) ** 2))
 
 
@@ -179,7 +184,7 @@ def independent_vertices(positions, degrees=None):
 
 def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_options=None,
                  max_iter=None, max_time=None, progress=None, vertices=None, start=None, on_limit="fail",
-                 settings=None):
+                 settings=None, corner_floor=None, area_floor=None):
     """Solve the angle NLP (see the module docstring for the strategy of each formulation).
 
     Parameters
@@ -212,6 +217,10 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     settings : SolverSettings, optional
         The tuning constants (default :class:`~sphere_nlp.settings.SolverSettings` ()), and the
         ``on_run`` hook.
+    corner_floor, area_floor : float, optional
+        Override ``settings.corner_floor`` (in the area modes ``settings.area_mode_corner_floor``)
+        and ``settings.area_floor``: log-chord bounds u >= corner_floor x beta per corner and
+        e >= area_floor x 4 pi / t per triangle; 0 disables a floor.
 
     Returns
     -------
@@ -220,6 +229,12 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     settings = DEFAULT_SETTINGS if settings is None else settings
     if not isinstance(settings, SolverSettings):
         raise UsageError("settings must be a sphere_nlp.SolverSettings, not %s" % type(settings).__name__)
+    check_floors(corner_floor, area_floor)
+    if corner_floor is not None:
+        settings = settings.replace(**{"area_mode_corner_floor" if targets.area_weight > 0 else "corner_floor":
+                                       float(corner_floor)})
+    if area_floor is not None:
+        settings = settings.replace(area_floor=float(area_floor))
     if on_limit not in ON_LIMIT:
         raise ValueError("on_limit must be one of %s, not %r" % (ON_LIMIT, on_limit))
     if start is None:
@@ -231,6 +246,34 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     if formulation == "log-chord":
         return _solve_log_chord(context, on_limit)
     return _solve_paper_form(context)
+
+
+def check_floors(corner_floor, area_floor):
+    """UsageError unless each floor is None or a number in [0, 1)."""
+    for name, value in (("corner_floor", corner_floor), ("area_floor", area_floor)):
+        if value is not None and not (isinstance(value, (int, float, np.floating)) and 0 <= value < 1):
+            raise UsageError("%s must be a number in [0, 1) (0 disables it), not %r" % (name, value))
+
+
+def floor_bounds(targets, settings):
+    """The floors as lower bounds: log u per corner (3t,) and log e per triangle (t,).
+
+    log u >= log max(margin, corner floor x beta), log e >= log(area floor x 4 pi / t) (-inf if 0).
+
+    Examples
+    --------
+    >>> from sphere_nlp.targets import Targets
+    >>> tg = Targets(np.full((2, 3), np.pi / 3), np.full(2, 2 * np.pi), 1.0, 0.0, "custom")
+    >>> u, e = floor_bounds(tg, DEFAULT_SETTINGS)
+    >>> np.exp(u).round(4).tolist(), round(float(np.exp(e[0]) / (2 * np.pi)), 20)
+    ([0.1047, 0.1047, 0.1047, 0.1047, 0.1047, 0.1047], 1e-10)
+    """
+    fraction = settings.area_mode_corner_floor if targets.area_weight > 0 else settings.corner_floor
+    log_u = np.log(np.maximum(settings.angle_margin, fraction * np.asarray(targets.angles, float).ravel()))
+    t = len(targets.excess)
+    with np.errstate(divide="ignore"):
+        log_e = np.full(t, np.log(settings.area_floor * 4 * np.pi / t))
+    return log_u, log_e
 
 
 @dataclass
@@ -255,6 +298,9 @@ class _Context:
     dropped: list
     hessian: str
     window: float
+    log_u_floor: np.ndarray = None
+    log_e_floor: np.ndarray = None
+    log_e_lower: np.ndarray = None
     stages: list = field(default_factory=list)
 
     @classmethod
@@ -280,7 +326,9 @@ class _Context:
         # the linear guess, whose positions are unknown).
         dropped = (independent_vertices(initial.positions, connectivity.vertex_degree)
                    if initial.positions is not None else [])
+        log_u_floor, log_e_floor = floor_bounds(targets, settings)
         return cls(connectivity=connectivity, targets=targets, formulation=formulation, settings=settings,
+                   log_u_floor=log_u_floor, log_e_floor=log_e_floor,
                    options=options, warm_options=warm_options, first_options=first_options, progress=progress,
                    initial=initial, dropped=dropped,
                    hessian=settings.area_mode_hessian if area_mode else "exact",
@@ -439,7 +487,10 @@ def margin_stage(context, nlp, x_start):
     Straight to the margin stage: the optimum is often at a degenerate triangle (area modes nearly
     always), which an equality stage chases towards log u = -inf before the margin stage starts
     again anyway (docs/tuning.md, "angle_mode_excess_window"). Corners already below the margin at
-    ``x_start`` keep their own size less 10% as bound (:func:`margin_restart`).
+    ``x_start`` keep their own size less 10% as bound (:func:`margin_restart`). The floors
+    (:func:`floor_bounds`) are the margin of each corner and a lower bound on each log e; a corner
+    of the start below its floor by more than ``max_margin_lift`` in the log keeps its own size less
+    10% as bound, a triangle below the area floor is lifted to it (:func:`area_floor_restart`).
 
     Returns
     -------
@@ -448,9 +499,11 @@ def margin_stage(context, nlp, x_start):
         The stage's lower bounds on log u.
     """
     restart, log_u_lower, _ = margin_restart(x_start, x_start, context.n_faces, nlp.angle_margin,
-                                             context.settings.max_margin_lift)
+                                             context.settings.max_margin_lift, log_floor=context.log_u_floor)
+    restart, context.log_e_lower = area_floor_restart(restart, context.n_faces, context.log_e_floor,
+                                                      context.settings.max_floor_lift)
     run = windowed_solve(context, nlp, restart, "margin", inequalities=True, log_u_lower=log_u_lower,
-                         first_options=context.first_options)
+                         first_options=context.first_options, log_e_lower=context.log_e_lower)
     return run, log_u_lower
 
 
@@ -481,9 +534,12 @@ def equality_fallback(context, nlp, x_start, x0):
         return run, False, None
     x_equality = x0 if equality_diverged else run.x
     restart, log_u_lower, from_equality = margin_restart(x_equality, x0, context.n_faces, nlp.angle_margin,
-                                                         context.settings.max_margin_lift, any_lift=True)
+                                                         context.settings.max_margin_lift, any_lift=True,
+                                                         log_floor=context.log_u_floor)
+    restart, context.log_e_lower = area_floor_restart(restart, context.n_faces, context.log_e_floor,
+                                                      context.settings.max_floor_lift)
     run = windowed_solve(context, nlp, restart, "margin", inequalities=True, log_u_lower=log_u_lower,
-                         warm_from=run if from_equality else None)
+                         warm_from=run if from_equality else None, log_e_lower=context.log_e_lower)
     return run, True, log_u_lower
 
 
@@ -510,7 +566,7 @@ def restore_dropped_sums(context, nlp, run, obtuse, with_margin, log_u_lower):
         penalty *= 100
         nlp = context.nlp(obtuse, dropped_penalty=penalty)
         run = windowed_solve(context, nlp, run.x, "penalty-%.0e" % penalty, inequalities=with_margin,
-                             log_u_lower=log_u_lower)
+                             log_u_lower=log_u_lower, log_e_lower=context.log_e_lower if with_margin else None)
         violation = context.violation(nlp, run)
     return nlp, run, violation
 
@@ -563,7 +619,7 @@ def diverged(connectivity, nlp, x, settings=DEFAULT_SETTINGS):
 
 
 def margin_restart(x_equality, x_start, n_faces, angle_margin, max_lift=DEFAULT_SETTINGS.max_margin_lift,
-                   any_lift=False):
+                   any_lift=False, log_floor=None):
     """Where the margin stage starts, and its lower bounds on log u per corner.
 
     From the equality stage's result if it is finite and lifting its corners to the margin changes
@@ -584,8 +640,11 @@ def margin_restart(x_equality, x_start, n_faces, angle_margin, max_lift=DEFAULT_
     log_u_lower : (3 n_faces,) array
     from_equality : bool
         Whether ``restart`` is the equality result (else the stage's start).
+
+    ``log_floor`` (3 n_faces,), if given, is each corner's margin in log u instead of
+    log(angle_margin) (the corner floors, :func:`floor_bounds`).
     """
-    margin = np.log(angle_margin)
+    margin = np.log(angle_margin) if log_floor is None else np.asarray(log_floor, float)
     restart = x_start
     # A corner already below the margin at the start counts from its own size there: nefertiti.obj
     # has two of 6e-7 rad, which grew to 7e-6 in the equality stage; measured from the margin they
@@ -598,6 +657,31 @@ def margin_restart(x_equality, x_start, n_faces, angle_margin, max_lift=DEFAULT_
     log_u_lower = np.where(log_u < margin - max_lift, log_u - 0.1, margin)
     restart[:3 * n_faces] = np.maximum(log_u, log_u_lower + 1e-3)
     return restart, log_u_lower, from_equality
+
+
+def area_floor_restart(x, n_faces, log_e_floor, max_lift=DEFAULT_SETTINGS.max_margin_lift):
+    """The area floor's bounds on log e for a stage starting at x, and x just inside them.
+
+    As for the corners (:func:`margin_restart`): a triangle below its floor by less than
+    ``max_lift`` in log e is lifted to it, one further below keeps its own size less 10% as bound.
+
+    Returns
+    -------
+    restart : array (a copy)
+    log_e_lower : (n_faces,) array
+
+    Examples
+    --------
+    >>> x = np.log([1.0, 1.0, 1.0, 1e-3, 1e-12])
+    >>> restart, lower = area_floor_restart(x, 1, np.full(1, np.log(1e-10)))
+    >>> bool(lower[0] == np.log(1e-10)), bool(restart[3] > lower[0])
+    (True, True)
+    """
+    restart = np.array(x, float)
+    log_e = restart[3 * n_faces:]
+    log_e_lower = np.where(log_e < log_e_floor - max_lift, log_e - 0.1, log_e_floor)
+    restart[3 * n_faces:] = np.maximum(log_e, log_e_lower + 1e-3)
+    return restart, log_e_lower
 
 
 def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, stages=None,
@@ -718,7 +802,8 @@ def project_onto_constraints(connectivity, targets, nlp, x, formulation, dropped
         The run, named "projection" (recorded in ``stages`` if given).
     """
     angles, excess = nlp.unpack(x)
-    here = replace(targets, angles=angles, excess=excess, angle_weight=1.0, area_weight=1.0)
+    here = replace(targets, angles=angles, excess=excess, angle_weight=1.0, area_weight=1.0,
+                   corner_weighting="uniform")
     projection = AngleNLP(connectivity, here, formulation, dropped_vertices=dropped,
                           obtuse_corners=angles > settings.obtuse_angle, angle_margin=settings.angle_margin,
                           dropped_penalty=settings.dropped_penalty)
@@ -744,7 +829,14 @@ def _solution(context, angles, excess, run, stopped_status=None):
     success = bool(run.success and not violates_inequalities(angles, excess)
                    and violation <= context.settings.feasibility_tolerance)
     initial = context.initial
+    floor_corners = floor_triangles = 0
+    if context.formulation == "log-chord":
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = (angles - excess[:, None] / 2).ravel()
+            floor_corners = int(np.sum(np.log(u) <= context.log_u_floor + 0.01))
+            floor_triangles = int(np.sum(np.log(excess) <= context.log_e_floor + 0.01))
     return AngleSolution(angles=angles, excess=excess, success=success,
+                         floor_corners=floor_corners, floor_triangles=floor_triangles,
                          status=stopped_status or run.status, converged=success and stopped_status is None,
                          iterations=sum(s["iterations"] for s in context.stages),
                          objective=objective_value(context.targets, angles, excess),

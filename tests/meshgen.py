@@ -180,3 +180,57 @@ def bipyramid(n=1000, height=1.0):
     top = np.column_stack([k, (k + 1) % n, np.full(n, n)])
     bottom = np.column_stack([(k + 1) % n, k, np.full(n, n + 1)])
     return V, np.vstack([top, bottom])
+def tentacle_creature(n_tentacles=8, segments=10, step=0.25, taper=0.97, subdivisions=2):
+    """A round body with long thin tentacles: a conformal map shrinks each tentacle exponentially.
+
+    The body is an icosphere; each tentacle is one of its triangles extruded ``segments`` times by
+    ``step`` along its normal (a prism of three long sides), its cross-section scaled by ``taper``
+    at every step. The tentacles grow from the faces nearest ``n_tentacles`` well-spread directions
+    (a Fibonacci lattice). Length over perimeter is about 10 with the defaults, so the conformal
+    factor at a tip is about exp(-2 pi 10): the limb category of issue-style meshes (koala, octopus).
+    """
+    V, F = icosphere(subdivisions)
+    V, F = [p for p in V], [tuple(f) for f in F]
+    k = np.arange(n_tentacles) + 0.5
+    z = 1 - 2 * k / n_tentacles
+    phi = np.pi * (1 + 5 ** 0.5) * k
+    directions = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
+    centroids = np.array([np.mean([V[i] for i in f], axis=0) for f in F])
+    roots = {int(np.argmax(centroids @ d)) for d in directions}
+    new_faces = [f for i, f in enumerate(F) if i not in roots]
+    for root in sorted(roots):
+        ring = list(F[root])
+        P = np.array([V[i] for i in ring])
+        normal = np.cross(P[1] - P[0], P[2] - P[0])
+        normal /= np.linalg.norm(normal)
+        for _ in range(segments):
+            centre = P.mean(axis=0)
+            P = centre + step * normal + taper * (P - centre)
+            top = list(range(len(V), len(V) + 3))
+            V.extend(P)
+            for j in range(3):
+                a, b, a2, b2 = ring[j], ring[(j + 1) % 3], top[j], top[(j + 1) % 3]
+                new_faces += [(a, b, b2), (a, b2, a2)]
+            ring = top
+        new_faces.append(tuple(ring))
+    return np.array(V, float), np.array(new_faces, np.int64)
+
+
+def degree_cap(degree=1000, n_body=300):
+    """A sphere with a vertex of the given degree: the north pole fanned to a ring of ``degree``
+    vertices near it (needle triangles of apex angle 2 pi / degree), the ring joined to
+    ``n_body`` points spread over the rest of the sphere (more needles), as one convex hull."""
+    ring_z = 0.95
+    angle = 2 * np.pi * np.arange(degree) / degree
+    ring_r = np.sqrt(1 - ring_z ** 2)
+    ring = np.stack([ring_r * np.cos(angle), ring_r * np.sin(angle), np.full(degree, ring_z)], axis=1)
+    k = np.arange(n_body) + 0.5
+    z = -1 + (1 + 0.85) * k / n_body              # the body stays well below the ring
+    phi = np.pi * (1 + 5 ** 0.5) * k
+    body = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
+    P = np.concatenate([[[0.0, 0.0, 1.0]], ring, body])
+    F = ConvexHull(P).simplices.copy()
+    normal = np.cross(P[F[:, 1]] - P[F[:, 0]], P[F[:, 2]] - P[F[:, 0]])
+    inward = np.einsum("ij,ij->i", normal, P[F].mean(axis=1)) < 0
+    F[inward] = F[inward][:, ::-1]
+    return P, F

@@ -37,8 +37,10 @@ def test_jacobian_matches_finite_differences(formulation):
         np.testing.assert_allclose(jac[:, k], fd, atol=1e-7)
 
 
-@pytest.mark.parametrize("dropped, with_obtuse", [([], False), ([0, 5, 11], False), ([0, 5, 11], True)])
-def test_structured_derivatives_match_casadi_ad(dropped, with_obtuse):
+@pytest.mark.parametrize("dropped, with_obtuse, weighting", [([], False, "uniform"), ([0, 5, 11], False, "relative"),
+                                                             ([0, 5, 11], True, "uniform"),
+                                                             ([0, 5, 11], True, "relative")])
+def test_structured_derivatives_match_casadi_ad(dropped, with_obtuse, weighting):
     # The log-chord form hands IPOPT exact derivatives assembled from its per-triangle structure,
     # either as CasADi graphs (evaluation="casadi") or in numpy (the default); both must equal
     # CasADi's automatic differentiation of the same objective and constraints.
@@ -48,8 +50,9 @@ def test_structured_derivatives_match_casadi_ad(dropped, with_obtuse):
     c = build_connectivity(F, len(V))
     rng = np.random.default_rng(2)
     obtuse = rng.random((c.n_faces, 3)) < 0.3 if with_obtuse else None
-    nlp = AngleNLP(c, make_targets("original-areas", V, F, c.vertex_degree), "log-chord",
-                   dropped_vertices=dropped, obtuse_corners=obtuse)
+    # Relative weighting: per-corner weights that differ (1 / beta^2 of the 3D angles).
+    targets = make_targets("original-areas", V, F, c.vertex_degree, angle_weight=1.0, corner_weighting=weighting)
+    nlp = AngleNLP(c, targets, "log-chord", dropped_vertices=dropped, obtuse_corners=obtuse)
     angles = np.full((c.n_faces, 3), np.pi / 3) + 0.1 * rng.random((c.n_faces, 3))
     x = nlp.pack(angles, angles.sum(1) - np.pi + 0.02)
     lam_f, lam_g = 0.7, rng.standard_normal(nlp.n_equalities)
