@@ -32,7 +32,7 @@ SHARED = ROOT.parent / "shared" / "meshes"
 
 SHARED_CASES = ["knight.off", "spot.obj", "bunny.off", "max_planck.obj", "elephant.obj",
                 "cheburashka.off", "hand_closed.obj", "brain_lh_pial_fsaverage5.off",
-                "armadillo_remeshed.obj", "armadillo.obj", "nefertiti.obj"]
+                "armadillo_remeshed.obj", "armadillo.obj", "nefertiti.obj", "penguin.obj", "koala.obj"]
 QUICK_CASES = SHARED_CASES[:7]
 
 WORKER = r"""
@@ -232,18 +232,24 @@ def write_tables(rows, path_md, note=""):
              "is one run of the whole pipeline (load to certificate) in its own process, at the commit "
              "in its last column. Times vary by about 20%% between runs on this machine, more when other "
              "jobs share it." % (_machine(), _casadi_version()), ""] + ([note, ""] if note else []) + [
-             "| mesh | vertices | mode | formulation | status | certified | iterations | load s | build s | solve s | unfold s | certify s | total s | peak RSS MB | objective | max angle err | commit |",
+             "| mesh | vertices | mode | formulation | status | certified | iterations | solve s | total s "
+             "| peak RSS MB | objective | mean angle dist ° | mean abs log area | QC max | min area / mean "
+             "| max angle err | commit |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         t = r.get("timings_s", {})
         cert = r.get("certificate", {})
+        # The independent check of the written map (sphere_nlp.metrics.usability_summary).
+        use = r.get("usability") or {}
         lines.append("| %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s |" % (
             mesh_label(r["mesh"]),
             r.get("vertices", ""), r["mode"], r["formulation"], status_text(r),
             "yes" if cert.get("valid") else "no", iterations_text(r),
-            fmt(t.get("load")), fmt(t.get("build")), fmt(t.get("solve")), fmt(t.get("unfold"), "%.2f"),
-            fmt(t.get("certify"), "%.2f"), fmt(t.get("total", r.get("wall_s"))), fmt(r.get("peak_rss_mb"), "%.0f"),
-            fmt(r.get("objective"), "%.6g"), fmt(r.get("max_angle_error"), "%.1e"), r.get("commit", "?")))
+            fmt(t.get("solve")), fmt(t.get("total", r.get("wall_s"))), fmt(r.get("peak_rss_mb"), "%.0f"),
+            fmt(r.get("objective"), "%.6g"), fmt(use.get("mean_abs_angle_diff_deg"), "%.2f"),
+            fmt(use.get("mean_abs_log_area"), "%.3f"), fmt(use.get("qc_max"), "%.3g"),
+            fmt(use.get("min_area_ratio"), "%.1e"), fmt(r.get("max_angle_error"), "%.1e"),
+            r.get("commit", "?")))
     ok = [r for r in rows if r.get("certificate", {}).get("valid") and r["formulation"] == "log-chord"
           and r["mode"] == "original-angles"]
     if len(ok) >= 3:
