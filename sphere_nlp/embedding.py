@@ -38,13 +38,19 @@ def edge_weights(vertices, connectivity, kind="cotan"):
     return np.maximum(w, 1e-3 * np.median(np.abs(w)))
 
 
-def planar_tutte(connectivity, weights, outer_face):
-    """Tutte embedding with the given outer face on an equilateral triangle; (n, 2) positions."""
+def graph_laplacian(connectivity, weights):
+    """The (n, n) CSR Laplacian D - W of the edge graph with the given edge weights."""
     n = connectivity.n_vertices
     e = connectivity.edges
     W = sp.coo_matrix((np.r_[weights, weights], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
                       shape=(n, n)).tocsr()
-    L = sp.diags(np.asarray(W.sum(1)).ravel()) - W
+    return (sp.diags(np.asarray(W.sum(1)).ravel()) - W).tocsr()
+
+
+def planar_tutte(connectivity, weights, outer_face):
+    """Tutte embedding with the given outer face on an equilateral triangle; (n, 2) positions."""
+    n = connectivity.n_vertices
+    L = graph_laplacian(connectivity, weights)
     outer = connectivity.faces[outer_face]
     angles = np.pi / 2 + 2 * np.pi * np.arange(3) / 3
     P = np.zeros((n, 2))
@@ -93,10 +99,7 @@ def punctured_embedding(connectivity, vertex=None):
     angles = -2 * np.pi * np.arange(len(ring)) / len(ring)
     plane = np.zeros((n, 2))
     plane[ring] = np.c_[np.cos(angles), np.sin(angles)]
-    e = connectivity.edges
-    W = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                      shape=(n, n)).tocsr()
-    L = (sp.diags(np.asarray(W.sum(1)).ravel()) - W).tocsr()
+    L = graph_laplacian(connectivity, np.ones(len(connectivity.edges)))
     inner = np.setdiff1d(np.arange(n), np.r_[ring, vertex])
     if len(inner):
         rhs = -L[inner][:, ring] @ plane[ring]
