@@ -400,6 +400,58 @@ class _SafeStream:
             return False
 
 
+def subcommand_parser(name, description):
+    """The argument parser of ``sphere-nlp NAME``: its usage errors are one line (see :func:`run_subcommand`)."""
+    return _Parser(prog="%s %s" % (PROG, name), description=description)
+
+
+def run_subcommand(parser, argv, body, interrupted="nothing more written"):
+    """Run a subcommand with the main command's contract; its exit status.
+
+    ``body(args, say)`` does the work and returns the exit status; ``say(line)`` prints a progress
+    line unless ``-q``. Bad usage and input (:class:`~sphere_nlp.errors.SphereNLPError`) and file
+    system errors end it with one line ``PROG: error: ...`` (exit 2 for usage, input and files);
+    SIGINT / SIGTERM with one line saying ``interrupted`` and what was left (``interrupted``, a
+    string or a function of ``args``), exit 130 / 143; anything else with one "internal error" line.
+    """
+    stderr = _SafeStream(sys.stderr)
+    prog = parser.prog
+    try:
+        args = parser.parse_args(argv)
+    except errors.UsageError as exc:
+        stderr.write("%s: error: %s\n" % (prog, exc))
+        return exc.exit_status
+    except SystemExit as exit_:        # --help
+        return int(exit_.code or 0)
+
+    def say(line):
+        if not getattr(args, "quiet", False):
+            stderr.write("%s: %s\n" % (prog, line))
+            stderr.flush()
+
+    try:
+        with interrupts.handled_signals():
+            return body(args, say)
+    except errors.SphereNLPError as exc:
+        stderr.write("%s: error: %s\n" % (prog, exc))
+        return exc.exit_status
+    except OSError as exc:
+        where = "%s: " % exc.filename if getattr(exc, "filename", None) else ""
+        stderr.write("%s: error: %s%s\n" % (prog, where, exc.strerror or exc))
+        return 2
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        left = interrupted(args) if callable(interrupted) else interrupted
+        stderr.write("%s: interrupted; %s (%s)\n" % (prog, left, signal.Signals(signum).name))
+        return 128 + signum
+    except MemoryError:
+        stderr.write("%s: error: out of memory\n" % prog)
+        return 1
+    except Exception as exc:  # a bug: still one line
+        stderr.write("%s: internal error: %s: %s\n" % (prog, type(exc).__name__, exc))
+        return 1
+
+
 def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["reproduce"]:      # `python -m sphere_nlp reproduce fig3 --out DIR`

@@ -18,7 +18,6 @@ Exit status: 0 all rows written (whatever their validity); 2 an unknown method o
 cannot be written (nothing run), or a mesh was rejected (the others ran).
 """
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -297,8 +296,10 @@ def compare(paths, out_dir, methods=DEFAULT_METHODS, max_time=None, progress=Non
 
 def main(argv=None):
     """``python -m sphere_nlp compare MESH... --out DIR [--methods ...] [--max-time S]``."""
-    parser = argparse.ArgumentParser(
-        prog="sphere-nlp compare",
+    from .cli import run_subcommand, subcommand_parser
+
+    parser = subcommand_parser(
+        "compare",
         description="Map meshes with sphere_nlp and with baseline methods; write the validity and "
                     "distortion of every map to DIR/compare.json and DIR/compare.md. A rejected mesh "
                     "is reported and skipped; the others run.")
@@ -313,33 +314,18 @@ def main(argv=None):
     parser.add_argument("--max-time", type=float, metavar="SECONDS",
                         help="wall-clock limit of each sphere_nlp run")
     parser.add_argument("-q", "--quiet", action="store_true", help="print only errors")
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exit_:
-        return int(exit_.code or 0)
 
-    def say(line):
-        if not args.quiet:
-            print("compare: " + line, file=sys.stderr, flush=True)
-
-    try:
+    def body(args, say):
         methods = parse_methods(args.methods)
         say("%d mesh(es) x %d method(s) -> %s" % (len(args.meshes), len(methods), args.out))
         rows = compare(args.meshes, args.out, methods=methods, max_time=args.max_time, progress=say,
                        save_maps=args.save_maps)
-    except errors.SphereNLPError as exc:
-        print("sphere-nlp compare: error: %s" % exc, file=sys.stderr)
-        return exc.exit_status
-    except OSError as exc:
-        print("sphere-nlp compare: error: cannot write to %s: %s" % (args.out, exc.strerror or exc),
-              file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("sphere-nlp compare: interrupted; the rows done so far are in %s" % args.out, file=sys.stderr)
-        return 130
-    say("wrote %s and %s (%d rows, %d valid)" % (Path(args.out) / "compare.json", Path(args.out) / "compare.md",
-                                                 len(rows), sum(bool(r["valid"]) for r in rows)))
-    rejected = [r for r in rows if r["method"] == REJECTED_METHOD]
-    for row in rejected:
-        print("sphere-nlp compare: error: %s (skipped)" % row["status"].split(": ", 1)[1], file=sys.stderr)
-    return 2 if rejected else 0
+        say("wrote %s and %s (%d rows, %d valid)" % (Path(args.out) / "compare.json", Path(args.out) / "compare.md",
+                                                     len(rows), sum(bool(r["valid"]) for r in rows)))
+        rejected = [r for r in rows if r["method"] == REJECTED_METHOD]
+        for row in rejected:
+            print("sphere-nlp compare: error: %s (skipped)" % row["status"].split(": ", 1)[1], file=sys.stderr)
+        return 2 if rejected else 0
+
+    return run_subcommand(parser, argv, body,
+                          interrupted=lambda args: "the rows done so far are in %s" % args.out)

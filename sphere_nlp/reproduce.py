@@ -11,7 +11,6 @@ meshes) and ``fig3.json`` (the numbers behind the findings, one object per panel
 :func:`panel_metrics`).
 """
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -233,31 +232,23 @@ FIGURES = {"fig3": reproduce_fig3}
 
 def main(argv=None):
     """``python -m sphere_nlp reproduce FIGURE [--out DIR]``; exit 0 when every panel is certified."""
-    parser = argparse.ArgumentParser(
-        prog="sphere-nlp reproduce",
+    from .cli import run_subcommand, subcommand_parser
+
+    parser = subcommand_parser(
+        "reproduce",
         description="Reproduce a figure of Sheffer, Gotsman & Dyn (2004): writes the figure as PNG, "
                     "its meshes and its numbers as JSON.")
     parser.add_argument("figure", choices=sorted(FIGURES), help="which figure")
     parser.add_argument("--out", default=".", metavar="DIR", help="output folder (default: .)")
     parser.add_argument("-q", "--quiet", action="store_true", help="print only errors")
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exit_:
-        return int(exit_.code or 0)
 
-    def say(line):
-        if not args.quiet:
-            print("reproduce %s: %s" % (args.figure, line), file=sys.stderr)
-
-    try:
+    def body(args, say):
         records = FIGURES[args.figure](args.out, progress=say)
-    except OSError as exc:
-        print("sphere-nlp reproduce: error: cannot write to %s: %s" % (args.out, exc.strerror or exc),
-              file=sys.stderr)
-        return 2
-    failed = [r["panel"] for r in records if not r["valid"]]
-    say("wrote %s" % (Path(args.out) / ("%s.png" % args.figure)))
-    if failed:
-        print("sphere-nlp reproduce: error: panel(s) %s not certified" % ", ".join(failed), file=sys.stderr)
-        return 1
-    return 0
+        failed = [r["panel"] for r in records if not r["valid"]]
+        say("wrote %s" % (Path(args.out) / ("%s.png" % args.figure)))
+        if failed:
+            print("sphere-nlp reproduce: error: panel(s) %s not certified" % ", ".join(failed), file=sys.stderr)
+            return 1
+        return 0
+
+    return run_subcommand(parser, argv, body)

@@ -8,8 +8,6 @@ the sphere: at an icosphere's vertices (remeshing), at a grid (a geometry image)
 positions of another shape (correspondence, transfer, morphing).
 """
 
-import argparse
-import sys
 import time
 from pathlib import Path
 
@@ -17,6 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import errors
+from .cli import run_subcommand, subcommand_parser
 from .locate import SphereLocator, interpolate, nearest_corner
 from .shapes import icosphere
 
@@ -267,32 +266,25 @@ def _check_folder(path, what):
         raise errors.UsageError("cannot write %s: no folder %s" % (path, folder))
 
 
-def _run(prog, parser, argv, body):
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exit_:
-        return int(exit_.code or 0)
+def _check_inputs(*paths):
+    """UsageError for the first given path that is not a file, before any map is made."""
+    for path in paths:
+        if path and not Path(path).is_file():
+            raise errors.UsageError("cannot read %s: no such file" % path)
 
-    def say(line):
-        if not args.quiet:
-            print("%s: %s" % (prog, line), file=sys.stderr, flush=True)
-    try:
-        return body(args, say)
-    except errors.SphereNLPError as exc:
-        print("%s: error: %s" % (prog, exc), file=sys.stderr)
-        return exc.exit_status
-    except OSError as exc:
-        print("%s: error: %s" % (prog, exc), file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("%s: interrupted; nothing written" % prog, file=sys.stderr)
-        return 130
+
+def _aligned_maps(args, landmarks, say, A=None):
+    """The maps of ``args.a`` (unless given) and ``args.b``, and the rotation aligning B's sphere to A's."""
+    A = load_map(args.a, args.sphere_a, say) if A is None else A
+    B = load_map(args.b, args.sphere_b, say)
+    _check_landmarks(landmarks, A, B)
+    return A, B, align_spheres(A, B, landmarks)
 
 
 def resample_main(argv=None):
     """``sphere-nlp resample MESH --icosphere K -o OUT [--sphere S.off]``."""
-    parser = argparse.ArgumentParser(
-        prog="sphere-nlp resample",
+    parser = subcommand_parser(
+        "resample",
         description="Write MESH's shape on an icosphere's connectivity, read through its sphere map "
                     "(mapped here, or given with --sphere), and report the Hausdorff distance.")
     parser.add_argument("mesh", metavar="MESH")
@@ -309,9 +301,7 @@ def resample_main(argv=None):
         _check_folder(args.output, "file")
         if not 0 <= args.icosphere <= 8:
             raise errors.UsageError("--icosphere must be between 0 and 8, got %d" % args.icosphere)
-        for path in (args.mesh, args.sphere):
-            if path and not Path(path).is_file():
-                raise errors.UsageError("cannot read %s: no such file" % path)
+        _check_inputs(args.mesh, args.sphere)
         start = time.perf_counter()
         X, S, F = load_map(args.mesh, args.sphere, say)
         t_map = time.perf_counter() - start
@@ -325,13 +315,13 @@ def resample_main(argv=None):
             "box diagonal), mean distance %.3g" % (args.output, len(V), t_map, t_resample, h, 100 * h / diag, mean))
         return 0
 
-    return _run("sphere-nlp resample", parser, argv, body)
+    return run_subcommand(parser, argv, body)
 
 
 def morph_main(argv=None):
     """``sphere-nlp morph A B --frames N --out DIR``."""
-    parser = argparse.ArgumentParser(
-        prog="sphere-nlp morph",
+    parser = subcommand_parser(
+        "morph",
         description="Write in-between meshes from A to B on A's connectivity (B resampled onto A's "
                     "sphere after aligning the spheres), DIR/frame_000.obj..., and DIR/strip.png.")
     parser.add_argument("a", metavar="A")
@@ -354,13 +344,8 @@ def morph_main(argv=None):
             raise errors.UsageError("--frames must be at least 2, got %d" % args.frames)
         _check_folder(args.out, "folder")
         landmarks = _parse_landmarks(args.landmarks)
-        for path in (args.a, args.b, args.sphere_a, args.sphere_b):
-            if path and not Path(path).is_file():
-                raise errors.UsageError("cannot read %s: no such file" % path)
-        A = load_map(args.a, args.sphere_a, say)
-        B = load_map(args.b, args.sphere_b, say)
-        _check_landmarks(landmarks, A, B)
-        R = align_spheres(A, B, landmarks)
+        _check_inputs(args.a, args.b, args.sphere_a, args.sphere_b)
+        A, B, R = _aligned_maps(args, landmarks, say)
         frames = morph_frames(A, B, args.frames, R, fit=args.fit)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -370,7 +355,7 @@ def morph_main(argv=None):
         say("wrote %d frames and strip.png to %s" % (len(frames), out))
         return 0
 
-    return _run("sphere-nlp morph", parser, argv, body)
+    return run_subcommand(parser, argv, body)
 
 
 def _parse_landmarks(text):
@@ -387,8 +372,8 @@ def _parse_landmarks(text):
 
 def transfer_main(argv=None):
     """``sphere-nlp transfer A B --values VALUES.npy -o OUT.npy [--kind nearest]``."""
-    parser = argparse.ArgumentParser(
-        prog="sphere-nlp transfer",
+    parser = subcommand_parser(
+        "transfer",
         description="Read per-vertex values of A (.npy, one row per vertex: a scalar field, colours, "
                     "labels) at every vertex of B through the aligned spheres; write them as .npy.")
     parser.add_argument("a", metavar="A")
@@ -411,9 +396,7 @@ def transfer_main(argv=None):
             raise errors.UsageError("cannot write %s: output must end in .npy" % args.output)
         _check_folder(args.output, "file")
         landmarks = _parse_landmarks(args.landmarks)
-        for path in (args.a, args.b, args.values, args.sphere_a, args.sphere_b):
-            if path and not Path(path).is_file():
-                raise errors.UsageError("cannot read %s: no such file" % path)
+        _check_inputs(args.a, args.b, args.values, args.sphere_a, args.sphere_b)
         try:
             values = np.load(args.values, allow_pickle=False)
         except ValueError as exc:
@@ -421,15 +404,14 @@ def transfer_main(argv=None):
         A = load_map(args.a, args.sphere_a, say)
         if len(values) != len(A[0]):
             raise errors.UsageError("%s has %d rows, A has %d vertices" % (args.values, len(values), len(A[0])))
-        B = load_map(args.b, args.sphere_b, say)
-        _check_landmarks(landmarks, A, B)
-        result = transfer(values, A, B, align_spheres(A, B, landmarks), kind=args.kind)
+        A, B, R = _aligned_maps(args, landmarks, say, A)
+        result = transfer(values, A, B, R, kind=args.kind)
         with atomic_output(args.output, "wb") as handle:
             np.save(handle, result)
         say("wrote %s: %s values for %d vertices of %s" % (args.output, args.kind, len(result), args.b))
         return 0
 
-    return _run("sphere-nlp transfer", parser, argv, body)
+    return run_subcommand(parser, argv, body)
 
 
 def _check_landmarks(landmarks, A, B):

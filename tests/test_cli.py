@@ -183,3 +183,13 @@ def test_finish_trace_certifies_a_trace_end_point_as_compare_would(tmp_path):
         assert row[key] == pytest.approx(reference[key], rel=1e-9), key
     V, F = load_mesh(sphere)
     assert certify(V, F).valid
+
+
+@pytest.mark.parametrize("argv", [["compare", "x.off"], ["reproduce", "fig9"], ["resample", "x.off"],
+                                  ["morph", "a.off"], ["transfer", "a.off", "b.off"]])
+def test_subcommand_usage_errors_are_one_line_with_exit_2(argv, capsys):
+    from sphere_nlp.cli import main
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("sphere-nlp %s: error: " % argv[0]), err
