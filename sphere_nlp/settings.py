@@ -111,7 +111,8 @@ class SolverSettings:
         The same in the area modes.
     area_floor : float
         Every triangle keeps its excess >= this fraction of the mean 4 pi / t, so that double
-        precision can place it (a bound on log e); 0 disables it.
+        precision can place it (a bound on log e; at 1e-12 its edges are >= 1e-6 of the mean edge,
+        leaving about 10 significant digits of the unit-sphere positions for its shape); 0 disables it.
     max_floor_lift : float
         A triangle whose start is below the area floor by less than this in log e is lifted to it
         (a start off the solution set), one further below keeps its own size less 10% as bound;
@@ -186,7 +187,7 @@ class SolverSettings:
     angle_margin: float = 1e-4
     corner_floor: float = 0.1
     area_mode_corner_floor: float = 0.0
-    area_floor: float = 1e-10
+    area_floor: float = 1e-12
     max_floor_lift: float = np.inf
     max_margin_lift: float = 1.0
     dropped_penalty: float = 100.0

@@ -266,7 +266,7 @@ def floor_bounds(targets, settings):
     >>> tg = Targets(np.full((2, 3), np.pi / 3), np.full(2, 2 * np.pi), 1.0, 0.0, "custom")
     >>> u, e = floor_bounds(tg, DEFAULT_SETTINGS)
     >>> np.exp(u).round(4).tolist(), round(float(np.exp(e[0]) / (2 * np.pi)), 20)
-    ([0.1047, 0.1047, 0.1047, 0.1047, 0.1047, 0.1047], 1e-10)
+    ([0.1047, 0.1047, 0.1047, 0.1047, 0.1047, 0.1047], 1e-12)
     """
     fraction = settings.area_mode_corner_floor if targets.area_weight > 0 else settings.corner_floor
     log_u = np.log(np.maximum(settings.angle_margin, fraction * np.asarray(targets.angles, float).ravel()))

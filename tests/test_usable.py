@@ -10,6 +10,7 @@ from sphere_nlp.errors import UsageError
 from sphere_nlp.geometry import corner_angles
 from sphere_nlp.metrics import usability_summary
 from sphere_nlp.nlp import AngleNLP
+from sphere_nlp.settings import DEFAULT_SETTINGS
 from sphere_nlp.solve import objective_value
 from sphere_nlp.targets import make_targets
 
@@ -114,13 +115,13 @@ def test_tentacle_mesh_is_closed_genus_zero_with_thin_limbs():
 
 def test_default_mode_certifies_the_tentacle_mesh_above_the_area_floor():
     # Without the area floor the solved angles ask for tentacle tips that double precision cannot
-    # place (the certificate finds flipped triangles); with it every triangle keeps 1e-10 of the
+    # place (the certificate finds flipped triangles); with it every triangle keeps 1e-12 of the
     # mean area and no corner falls below 0.1 x its target.
     V, F = tentacle_creature()
     result = parameterize((V, F), "original-angles")
     assert result.success
     check = result.usability()
-    assert check["min_area_ratio"] >= 1e-10 * (1 - 1e-6)
+    assert check["min_area_ratio"] >= DEFAULT_SETTINGS.area_floor * (1 - 1e-6)
     assert check["corners_below_fraction"] == 0
     assert result.floor_triangles > 0                  # the floor is what keeps them
     report = result.report()
@@ -136,7 +137,7 @@ def test_default_mode_maps_a_needle_cap_of_degree_1000_without_collapsed_corners
     result = parameterize((V, F), "original-angles")
     check = result.usability()
     assert result.success and check["corners_below_fraction"] == 0 and check["qc_max"] <= 50
-    assert check["min_area_ratio"] >= 1e-10
+    assert check["min_area_ratio"] >= DEFAULT_SETTINGS.area_floor
 
 
 def test_cli_floor_and_weighting_options(tmp_path):
@@ -189,7 +190,7 @@ def test_default_mode_is_usable_on_every_shared_mesh(name):
     result = parameterize(shared_mesh(name), "original-angles")
     assert result.success
     check = result.usability()
-    assert check["min_area_ratio"] >= 1e-10 * (1 - 1e-6)
+    assert check["min_area_ratio"] >= DEFAULT_SETTINGS.area_floor * (1 - 1e-6)
     assert check["corners_below_fraction"] == 0
     assert check["mean_abs_angle_diff_deg"] <= 1.1 * PAPER_ANGLE_DISTORTION[name.split(".")[0]]
     if name not in ("koala.obj", "cheburashka.off", "max_planck.obj"):    # QC max 1,556, 85, 60 (docs/tuning.md)
