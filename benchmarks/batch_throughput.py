@@ -62,6 +62,10 @@ def main():
     parser.add_argument("--count", type=int, default=20, help="meshes in the batch (default 20)")
     parser.add_argument("--skip-dask", action="store_true", help="leave out the Dask run")
     args = parser.parse_args()
+    # The Dask scheduler runs in this process and the workers start from it: both must import this
+    # checkout's sphere_nlp (Dask unpickles the task graph on the scheduler too).
+    sys.path.insert(0, str(ROOT))
+    os.environ["PYTHONPATH"] = str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")
     missing = [m for m in MESHES if not (SHARED / m).is_file()]
     if missing:
         sys.exit("shared meshes missing: %s" % ", ".join(missing))

@@ -182,3 +182,15 @@ def test_inputs_and_memory_bound(tmp_path):
     assert memory_bound_mb(43243, "original-areas") > 1540
     assert memory_bound_mb(172966, "equal-angles") > 3584
     assert memory_bound_mb(1000) < memory_bound_mb(100000)
+
+
+def test_dask_tasks_restore_glibcs_heap_for_arrays():
+    # Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536, which makes every numpy temporary above
+    # 128 KiB a fresh mmap (a mesh took 25% longer on a worker); the Dask tasks set the thresholds back.
+    import platform
+
+    from sphere_nlp.batch import _heap_allocation_for_arrays
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        pytest.skip("glibc only")
+    assert _heap_allocation_for_arrays() is True
