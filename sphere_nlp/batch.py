@@ -35,7 +35,6 @@ import csv
 import glob
 import io
 import json
-import ctypes
 import os
 import re
 import signal
@@ -49,6 +48,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from . import errors
+from .heap import arrays_on_heap
 from .mesh_io import atomic_output, write_json
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS
 from .solve import ON_LIMIT
@@ -87,9 +87,6 @@ CERTIFIED = ("certified", "certified, not optimal")
 # The options that decide a sphere: a finished one made with other values is not reused.
 RESULT_OPTIONS = ("target", "angle_weight", "area_weight", "formulation")
 LIMIT_OPTIONS = ("max_iter", "max_time", "on_limit")
-
-# glibc's mallopt parameters (malloc.h).
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 
 # One IPOPT at a time in a process, even on a Dask worker that runs several threads.
 _SOLVE_LOCK = threading.Lock()
@@ -651,30 +648,16 @@ def _interrupt_workers(executor, grace_s=10.0):
             process.join(1.0)
 
 
-def _heap_allocation_for_arrays():
-    """Let glibc keep the solver's arrays on its heap in this process (a Dask worker); True if set.
+def _map_one_on_dask(task):
+    """:func:`map_one` on a Dask worker, its large arrays on glibc's heap (:mod:`sphere_nlp.heap`).
 
     Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536, which also fixes glibc's mmap
-    threshold at its 128 KiB default, so every larger numpy temporary of an IPOPT evaluation is a
-    fresh mmap and page faults: cheburashka.off took 9.5-10.0 s instead of 7.6-8.6 s, and a batch of
-    20 small meshes ran at 1.36x its sequential speed on 2 workers instead of 1.85x. The thresholds
-    set here (mallopt) undo that; :func:`_map_one_on_dask` hands the memory back after each mesh.
+    threshold at 128 KiB, so every larger numpy temporary was a fresh mmap: cheburashka.off took
+    9.5-10.0 s on a worker instead of 7.6-8.6 s. The whole task runs heap-only, and the memory goes
+    back to the system after each mesh, as the worker expects.
     """
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        return bool(libc.mallopt(_M_MMAP_THRESHOLD, 32 * 2 ** 20) and libc.mallopt(_M_TRIM_THRESHOLD, 128 * 2 ** 20))
-    except (OSError, AttributeError):          # not glibc: nothing to undo
-        return False
-
-
-def _map_one_on_dask(task):
-    """:func:`map_one` on a Dask worker, with glibc's allocation thresholds for arrays."""
-    set_here = _heap_allocation_for_arrays()
-    try:
+    with arrays_on_heap():
         return map_one(task)
-    finally:
-        if set_here:
-            ctypes.CDLL("libc.so.6").malloc_trim(0)     # the memory goes back, as the worker expects
 
 
 def _run_dask(tasks, client, retries, report_row, notify):

@@ -47,6 +47,7 @@ import numpy as np
 from . import interrupts
 from .nlp import DEFAULT_FORMULATION, AngleNLP, LogChordNLP
 from .errors import UsageError
+from .heap import arrays_on_heap
 from .settings import DEFAULT_SETTINGS, SolverSettings
 from .starts import initial_point
 
@@ -240,12 +241,14 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     if start is None:
         start = "auto" if formulation == "log-chord" else "linear"
     gauge = settings.start_gauge if targets.area_weight == 0 else "area"
-    initial = initial_point(connectivity, targets, start, vertices, gauge)
-    context = _Context.make(connectivity, targets, formulation, settings, ipopt_options, max_iter, max_time,
-                            progress, initial)
-    if formulation == "log-chord":
-        return _solve_log_chord(context, on_limit)
-    return _solve_paper_form(context)
+    # Large arrays stay on the heap for the whole solve (sphere_nlp.heap).
+    with arrays_on_heap():
+        initial = initial_point(connectivity, targets, start, vertices, gauge)
+        context = _Context.make(connectivity, targets, formulation, settings, ipopt_options, max_iter, max_time,
+                                progress, initial)
+        if formulation == "log-chord":
+            return _solve_log_chord(context, on_limit)
+        return _solve_paper_form(context)
 
 
 def check_floors(corner_floor, area_floor):

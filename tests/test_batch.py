@@ -184,13 +184,36 @@ def test_inputs_and_memory_bound(tmp_path):
     assert memory_bound_mb(1000) < memory_bound_mb(100000)
 
 
-def test_dask_tasks_restore_glibcs_heap_for_arrays():
-    # Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536, which makes every numpy temporary above
-    # 128 KiB a fresh mmap (a mesh took 25% longer on a worker); the Dask tasks set the thresholds back.
+def test_solves_keep_arrays_on_the_heap_and_restore_glibcs_defaults_after():
+    # MUMPS and numpy allocate the same large blocks every iteration; mapped afresh each time they
+    # fault in again (hand_closed.obj original-areas: 110 s, 16 s of it in the kernel, against 88 s).
+    import ctypes
     import platform
 
-    from sphere_nlp.batch import _heap_allocation_for_arrays
+    import numpy as np
+
+    from sphere_nlp import heap
 
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         pytest.skip("glibc only")
-    assert _heap_allocation_for_arrays() is True
+    libc = ctypes.CDLL("libc.so.6")
+
+    class Mallinfo2(ctypes.Structure):
+        _fields_ = [(name, ctypes.c_size_t) for name in
+                    ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
+                     "fordblks", "keepcost")]
+
+    libc.mallinfo2.restype = Mallinfo2
+    with heap.arrays_on_heap() as applied:
+        assert applied
+        with heap.arrays_on_heap():                   # nested (a Dask task around a solve)
+            mapped = libc.mallinfo2().hblks
+            block = np.ones(2 ** 23)                  # 64 MiB: above any mmap threshold
+            assert libc.mallinfo2().hblks == mapped   # ... yet not mapped
+            del block
+        assert heap._active == 1
+    assert heap._active == 0
+    mapped = libc.mallinfo2().hblks
+    block = np.ones(2 ** 23)
+    assert libc.mallinfo2().hblks == mapped + 1       # the defaults are back: mapped again
+    del block
