@@ -839,8 +839,10 @@ class LogChordNLP(_AngleProblem):
     area_form : {"linear", "log"}
         The area term of the objective. ``"linear"`` is (9),
         ``area_weight * sum(((e - e') / e_mean)^2)``; ``"log"`` is
-        ``area_weight * sum((log e - log e')^2)``, convex in the unknown log e, which the area modes
+        ``area_weight * sum(w (log e - log e')^2)``, convex in the unknown log e, which the area modes
         solve first (:func:`sphere_nlp.solve.area_continuation`) before (9) itself.
+    log_area_weights : (t,) array, optional
+        The weights w of the "log" area term (default 1 for every triangle).
     obtuse_corners : (t, 3) bool array, optional
         Corners whose sin alpha and sin u in (8) are written through the other two
         corners (sin alpha_j = sin(u_k + u_l), sin u_j = sin(u_k + u_l + e/2), equal under (6)),
@@ -869,7 +871,7 @@ class LogChordNLP(_AngleProblem):
 
     def __init__(self, connectivity, targets, dropped_vertices=(), angle_margin=DEFAULT_SETTINGS.angle_margin,
                  dropped_penalty=DEFAULT_SETTINGS.dropped_penalty, area_form="linear", obtuse_corners=None,
-                 evaluation="numpy", hessian="exact"):
+                 evaluation="numpy", hessian="exact", log_area_weights=None):
         if evaluation not in EVALUATIONS:
             raise ValueError("evaluation must be one of %s, not %r" % (EVALUATIONS, evaluation))
         if area_form not in ("linear", "log"):
@@ -884,9 +886,15 @@ class LogChordNLP(_AngleProblem):
         obtuse_corners = np.asarray(obtuse_corners, dtype=bool)
         if obtuse_corners.shape != (t, 3):
             raise ValueError("obtuse_corners must be a (t, 3) boolean array")
+        if log_area_weights is None:
+            log_area_weights = np.ones(t)
+        log_area_weights = np.asarray(log_area_weights, dtype=float)
+        if log_area_weights.shape != (t,) or not (log_area_weights >= 0).all():
+            raise ValueError("log_area_weights must be a non-negative (t,) array")
         kept_vertices = np.setdiff1d(np.arange(connectivity.n_vertices), dropped_vertices)
         self._parts = self._log_chord_parts(connectivity, targets, kept_vertices, dropped_penalty,
-                                            area_form, obtuse_corners=obtuse_corners, hessian=hessian)
+                                            area_form, obtuse_corners=obtuse_corners, hessian=hessian,
+                                            log_area_weights=log_area_weights)
         self._x = ca.MX.sym("x", self.n_variables)
         self.n_equalities = self._parts["A"].shape[0]
         self.n_inequalities = 0          # (3)-(5) hold by construction (see the module docstring)
@@ -914,7 +922,7 @@ class LogChordNLP(_AngleProblem):
 
     @staticmethod
     def _log_chord_parts(connectivity, targets, kept_vertices, dropped_penalty=0.0, area_form="linear", *,
-                         obtuse_corners, hessian="exact"):
+                         obtuse_corners, hessian="exact", log_area_weights=None):
         """The log-chord form as g = A h(z) - b, with h one small function of each triangle's unknowns.
 
         Every term of the objective and of (6)-(8) depends on one triangle's unknowns
@@ -937,7 +945,7 @@ class LogChordNLP(_AngleProblem):
         dict with the per-triangle SX Functions ``triangle``, ``triangle_jacobian``,
         ``triangle_hessian`` (its ``upper`` entries), ``variable_of`` (t, 4) (each triangle's
         unknowns), ``A`` (scipy CSR), ``b``, ``parameters`` (beta (3, t), e' (1, t), obtuse flags
-        (3, t), corner weights (3, t)), ``objective_rows``, ``P`` (scipy CSR: the left-out vertex sums, or None),
+        (3, t), corner weights (3, t), weights of the "log" area term (1, t)), ``objective_rows``, ``P`` (scipy CSR: the left-out vertex sums, or None),
         ``dropped_penalty``.
         """
         t, n = connectivity.n_faces, connectivity.n_vertices
@@ -948,6 +956,7 @@ class LogChordNLP(_AngleProblem):
         weights = ca.SX.sym("w", width)
         obtuse = ca.SX.sym("obtuse", 3)                  # 1 at a corner flagged obtuse, else 0
         corner_weight = ca.SX.sym("corner_weight", 3)
+        log_area_weight = ca.SX.sym("log_area_weight")
         u, e = ca.exp(z[:3]), ca.exp(z[3])
         alpha = u + e / 2
         # Half-angle cosine rule: sin^2(a_j/2) = sin(e/2) sin(alpha_j - e/2) / (sin alpha_k sin alpha_l).
@@ -963,7 +972,7 @@ class LogChordNLP(_AngleProblem):
         log_half_chords = [ca.log(ca.sin(e / 2)) + ca.log(sin_u[j]) - ca.log(sin_alpha[(j + 1) % 3])
                            - ca.log(sin_alpha[(j + 2) % 3]) for j in range(3)]
         if area_form == "log":
-            area_term = (z[3] - ca.log(excess_target)) ** 2
+            area_term = log_area_weight * (z[3] - ca.log(excess_target)) ** 2
         else:
             area_term = ((e - excess_target) / targets.excess_scale) ** 2
         # Corner weights (Targets.corner_weights): ones for the paper's (9), 1/beta^2 scaled for
@@ -971,7 +980,7 @@ class LogChordNLP(_AngleProblem):
         term = (targets.angle_weight * ca.dot(corner_weight, (alpha - beta) ** 2)
                 + targets.area_weight * area_term)
         h_sx = ca.vertcat(term, ca.sum1(u) + e / 2 - np.pi, alpha, *log_half_chords)
-        inputs = [z, beta, excess_target, obtuse, corner_weight]
+        inputs = [z, beta, excess_target, obtuse, corner_weight, log_area_weight]
         triangle = ca.Function("sphere_nlp_triangle", inputs, [h_sx])
         jacobian_8x4 = ca.jacobian(h_sx, z)
         triangle_jacobian = ca.Function("sphere_nlp_triangle_jac", inputs,
@@ -1030,7 +1039,8 @@ class LogChordNLP(_AngleProblem):
                     upper=upper, variable_of=variable_of, d_rows=d_rows, d_cols=d_cols,
                     A=A, b=b, objective_rows=objective_rows, P=P, dropped_penalty=dropped_penalty,
                     parameters=(targets.angles.T, targets.excess.reshape(1, -1),
-                                np.asarray(obtuse_corners, dtype=float).T, targets.corner_weights.T))
+                                np.asarray(obtuse_corners, dtype=float).T, targets.corner_weights.T,
+                                (np.ones(t) if log_area_weights is None else log_area_weights).reshape(1, -1)))
 
     @staticmethod
     def _log_chord_graph(x, parts):

@@ -103,6 +103,35 @@ def test_clipped_hessian_is_the_exact_one_less_the_negative_log_term():
         np.testing.assert_allclose(np.triu(clipped), np.triu(expected), rtol=1e-9, atol=1e-9)
 
 
+def test_weighted_log_area_term_is_the_objectives_quadratic_model_at_the_targets():
+    # The area continuation's term w (log e - log e')^2 with w = (e' / e_mean)^2
+    # (solve.continuation_area_weights) has (9)'s area term's value, gradient (both 0) and second
+    # derivative in log e where every triangle is at its target; both evaluations carry the weights.
+    import casadi as ca
+
+    from sphere_nlp.solve import continuation_area_weights
+
+    V, F = ellipsoid(1)
+    c = build_connectivity(F, len(V))
+    targets = make_targets("original-areas", V, F, c.vertex_degree, angle_weight=0.0, area_weight=1.0)
+    weights = continuation_area_weights(targets)
+    assert weights.std() > 0.1 * weights.mean()                 # unequal targets: the weights differ
+    angles = np.full((c.n_faces, 3), np.pi / 3)
+    lam_g = np.zeros(0)
+    diagonals = {}
+    for form, evaluation in (("linear", "numpy"), ("log", "numpy"), ("log", "casadi")):
+        nlp = AngleNLP(c, targets, "log-chord", area_form=form, evaluation=evaluation,
+                       log_area_weights=weights if form == "log" else None)
+        x = nlp.pack(angles, targets.excess)
+        derivatives = nlp._numpy_problem()[2] if evaluation == "numpy" else nlp._symbolic_problem()[3]
+        f, grad = (np.asarray(v.full()).ravel() for v in derivatives["grad_f"](x, ca.DM.zeros(0, 1)))
+        hessian = derivatives["hess_lag"](x, ca.DM.zeros(0, 1), 1.0, np.zeros(nlp.n_equalities)).full()
+        assert abs(f.item()) < 1e-20 and np.abs(grad).max() < 1e-12
+        diagonals[form, evaluation] = np.diag(hessian)[3 * c.n_faces:]
+    np.testing.assert_allclose(diagonals["log", "numpy"], diagonals["linear", "numpy"], rtol=1e-12)
+    np.testing.assert_allclose(diagonals["log", "casadi"], diagonals["linear", "numpy"], rtol=1e-12)
+
+
 @pytest.mark.parametrize("mode", ["original-angles", "equal-areas"])
 def test_numpy_and_casadi_evaluation_reach_the_same_optimum(mode):
     # IPOPT's iterates depend on the evaluation only through rounding. In the angle mode that means
