@@ -150,12 +150,13 @@ class SolverSettings:
         start size less 10%), so that they do not collapse corners towards u = 0.
     area_continuation_options : mapping
         Added to the steps' IPOPT options when the floor is on (a small initial barrier).
-    area_continuation_weighting : {"objective", "uniform"}
-        How the steps weigh each triangle's log-area error (log e - log e'_tau)^2: by
-        (e' / e_mean)^2 of its final target e', so that near the targets the steps' area term is
-        (9)'s to second order and the walk ends near (9)'s optimum ("objective"), or all alike
-        ("uniform", which pulls tiny-target triangles to relative accuracy that (9) does not ask
-        for and the last stage then undoes). The same in equal-areas, whose targets are equal.
+    area_continuation_weighting : {"uniform", "objective"}
+        How the steps weigh each triangle's log-area error (log e - log e'_tau)^2: all alike
+        ("uniform"), or by (e' / e_mean)^2 of its final target e', so that near the targets the
+        steps' area term is (9)'s to second order and the walk ends near (9)'s optimum
+        ("objective": lower objectives on 8 of 11 original-areas rows and fewer iterations up to
+        15k vertices, but more at 43k-50k; docs/tuning.md). The same in equal-areas, whose targets
+        are equal.
     area_mode_hessian : {"exact", "clipped"}
         The Hessian the area modes hand IPOPT (:class:`sphere_nlp.nlp.LogChordNLP`'s ``hessian``);
         the angle modes use the exact one.
@@ -209,7 +210,7 @@ class SolverSettings:
     area_continuation_halvings: int = 3
     area_continuation_floor: bool = True
     area_continuation_options: MappingProxyType = _frozen(AREA_CONTINUATION_OPTIONS)
-    area_continuation_weighting: str = "objective"
+    area_continuation_weighting: str = "uniform"
     area_mode_hessian: str = "clipped"
     projection_iterations: int = 50
     obtuse_angle: float = np.pi / 2

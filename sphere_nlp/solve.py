@@ -774,9 +774,10 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
     return x
 
 
-def continuation_area_weights(targets, weighting="objective"):
+def continuation_area_weights(targets, weighting="uniform"):
     """Each triangle's weight in the area continuation's term (log e - log e'_tau)^2, (t,).
 
+    "uniform" (``SolverSettings.area_continuation_weighting``'s default): all ones.
     "objective": (e' / e_mean)^2 of the final target e'. Near e = e', (9)'s area term
     ((e - e') / e_mean)^2 equals (e' / e_mean)^2 (log e - log e')^2 to second order, so the walk's
     last step is (9)'s own quadratic model and ends near its optimum, while the pull on a triangle
@@ -789,7 +790,7 @@ def continuation_area_weights(targets, weighting="objective"):
     --------
     >>> from types import SimpleNamespace
     >>> targets = SimpleNamespace(excess=np.array([1.0, 2.0, 3.0]), excess_scale=2.0)
-    >>> continuation_area_weights(targets)
+    >>> continuation_area_weights(targets, "objective")
     array([0.25, 1.  , 2.25])
     """
     if weighting == "uniform":

@@ -114,7 +114,7 @@ def test_weighted_log_area_term_is_the_objectives_quadratic_model_at_the_targets
     V, F = ellipsoid(1)
     c = build_connectivity(F, len(V))
     targets = make_targets("original-areas", V, F, c.vertex_degree, angle_weight=0.0, area_weight=1.0)
-    weights = continuation_area_weights(targets)
+    weights = continuation_area_weights(targets, "objective")
     assert weights.std() > 0.1 * weights.mean()                 # unequal targets: the weights differ
     angles = np.full((c.n_faces, 3), np.pi / 3)
     lam_g = np.zeros(0)
