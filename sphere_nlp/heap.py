@@ -5,7 +5,7 @@ factorization, numpy's temporaries at each evaluation. glibc serves a block abov
 threshold (at most 32 MiB) with a fresh mmap and returns it on free, so the same pages fault in
 again every iteration: hand_closed.obj original-areas spent 16 of its 110 s in the kernel, and
 ran in 88 s with mmap off and freed memory kept (bunny.off 18-19 s against 14-16 s; the same
-iterations and optimum, peak memory 7-11% higher). Under Dask's nanny, which pins the trim
+iterations and optimum; peak memory 4-18% higher on the benchmark rows). Under Dask's nanny, which pins the trim
 threshold at 64 KiB, even blocks of 128 KiB were mapped afresh.
 
 :func:`arrays_on_heap` sets glibc's ``mallopt`` for the duration of a solve and restores the
@@ -25,7 +25,8 @@ DEFAULT_TRIM_THRESHOLD, DEFAULT_MMAP_MAX = 128 * 1024, 65536
 SOLVE_TRIM_THRESHOLD = 2 ** 31 - 1
 
 _lock = threading.Lock()
-_active = 0
+_active = 0             # solves inside arrays_on_heap now
+_applied = False        # whether the outermost one's settings took effect
 
 
 def _glibc():
@@ -56,16 +57,17 @@ def arrays_on_heap():
     ...     float(np.ones(10 ** 6).sum())
     1000000.0
     """
-    global _active
+    global _active, _applied
     libc = _glibc()
     if libc is None:
         yield False
         return
     with _lock:
         _active += 1
-        applied = set_heap_only(libc) if _active == 1 else True
+        if _active == 1:
+            _applied = set_heap_only(libc)
     try:
-        yield applied
+        yield _applied
     finally:
         with _lock:
             _active -= 1

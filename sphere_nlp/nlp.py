@@ -922,7 +922,7 @@ class LogChordNLP(_AngleProblem):
 
     @staticmethod
     def _log_chord_parts(connectivity, targets, kept_vertices, dropped_penalty=0.0, area_form="linear", *,
-                         obtuse_corners, hessian="exact", log_area_weights=None):
+                         obtuse_corners, log_area_weights, hessian="exact"):
         """The log-chord form as g = A h(z) - b, with h one small function of each triangle's unknowns.
 
         Every term of the objective and of (6)-(8) depends on one triangle's unknowns
@@ -945,8 +945,8 @@ class LogChordNLP(_AngleProblem):
         dict with the per-triangle SX Functions ``triangle``, ``triangle_jacobian``,
         ``triangle_hessian`` (its ``upper`` entries), ``variable_of`` (t, 4) (each triangle's
         unknowns), ``A`` (scipy CSR), ``b``, ``parameters`` (beta (3, t), e' (1, t), obtuse flags
-        (3, t), corner weights (3, t), weights of the "log" area term (1, t)), ``objective_rows``, ``P`` (scipy CSR: the left-out vertex sums, or None),
-        ``dropped_penalty``.
+        (3, t), corner weights (3, t), weights of the "log" area term (1, t)), ``objective_rows``,
+        ``P`` (scipy CSR: the left-out vertex sums, or None), ``dropped_penalty``.
         """
         t, n = connectivity.n_faces, connectivity.n_vertices
         width = 8                                        # rows of h per triangle
@@ -1040,7 +1040,7 @@ class LogChordNLP(_AngleProblem):
                     A=A, b=b, objective_rows=objective_rows, P=P, dropped_penalty=dropped_penalty,
                     parameters=(targets.angles.T, targets.excess.reshape(1, -1),
                                 np.asarray(obtuse_corners, dtype=float).T, targets.corner_weights.T,
-                                (np.ones(t) if log_area_weights is None else log_area_weights).reshape(1, -1)))
+                                log_area_weights.reshape(1, -1)))
 
     @staticmethod
     def _log_chord_graph(x, parts):
