@@ -21,6 +21,7 @@ from .mesh_io import (check_mesh_path, load_mesh, write_image, write_json, write
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, status_kind
 from .settings import DEFAULT_SETTINGS
 from .solve import check_floors, ON_LIMIT, solve_angles
+from .starts import checked_positions
 from .targets import MODES, make_targets
 from .texture import checker_image, spherical_uv, split_at_seams
 from .unfold import unfold
@@ -370,13 +371,19 @@ def max_angle_error(positions, faces, angles):
 
 
 def _start_in_repaired_numbering(start, prepared):
-    """Start positions given per input vertex, in the repaired numbering (the solve certifies them)."""
+    """Start positions given per input vertex, or per vertex of the repaired mesh (as an earlier
+    result's ``vertices``, or the sphere it wrote, have them), in the repaired numbering (the solve
+    certifies them)."""
     start = np.asarray(start, dtype=float)
     vertex_map = prepared.vertex_map
+    n_repaired = prepared.connectivity.n_vertices
+    if start.ndim == 2 and start.shape == (n_repaired, 3) and n_repaired != len(vertex_map):
+        return start
     if start.shape != (len(vertex_map), 3):
-        raise errors.UsageError("start positions must be a (%d, 3) array (one row per input vertex), not %s"
-                                % (len(vertex_map), start.shape))
-    positions = np.zeros((prepared.connectivity.n_vertices, 3))
+        raise errors.UsageError("the start has %s positions, the mesh %d vertices: a start gives one position "
+                                "per vertex" % ("x".join(map(str, start.shape)) if start.ndim != 2 or
+                                                start.shape[1] != 3 else start.shape[0], len(vertex_map)))
+    positions = np.zeros((n_repaired, 3))
     kept = vertex_map >= 0
     positions[vertex_map[kept]] = start[kept]
     return positions
@@ -540,9 +547,13 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         conformal map when it is bijective or the convex embedding (``auto``, default for log-chord;
         see :func:`sphere_nlp.starts.starting_positions`), or the paper's linear least-squares start
         (default for faithful and substituted). An array gives the start's unit-sphere positions,
-        one row per input vertex, which must form a valid spherical map of the mesh: an earlier
-        result's ``vertices[vertex_map]``, say, or a coarser mesh's solution carried over to its
-        subdivision (:func:`sphere_nlp.hierarchy.prolong_to_subdivision`).
+        one row per input vertex (or per vertex of the repaired mesh), which must form a valid
+        spherical map of the mesh: an earlier result's ``vertices``, the map of a mesh with the same
+        triangles (another shape of a series), or a coarser mesh's solution carried over to its
+        subdivision (:func:`sphere_nlp.hierarchy.prolong_to_subdivision`). In the area modes a
+        start already near the area targets skips the walk towards them
+        (``SolverSettings.area_walk_distance``): solving a map again from itself takes a few
+        iterations, and IPOPT then ends at an optimum near the start.
     check : bool
         Raise :class:`SolveError` / :class:`CertificateError` on failure (default). With False the
         result is returned with ``success=False`` instead.
@@ -632,7 +643,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
                            target_angles=target_angles, target_excess=target_excess,
                            corner_weighting=corner_weighting)
     if start is not None and not isinstance(start, str):
-        start = _start_in_repaired_numbering(start, prepared)
+        # Certified here, before the solve is announced, so a wrong start gets only its error.
+        start = checked_positions(connectivity, _start_in_repaired_numbering(start, prepared))
     lap("build", "solve")
     solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
                             max_iter=max_iter, max_time=max_time, progress=progress,

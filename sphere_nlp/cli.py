@@ -84,6 +84,10 @@ def build_parser():
                         help="keep every spherical corner >= F x its target angle (0: off)")
     method.add_argument("--area-floor", type=float, metavar="F",
                         help="keep every spherical triangle >= F x the mean area 4 pi / t (0: off)")
+    method.add_argument("--start", metavar="SPHERE",
+                        help="start from an earlier sphere of this mesh (one sphere-nlp wrote for it, or for "
+                             "a mesh with the same triangles); near the targets the area modes then skip "
+                             "their walk, and solving a map again takes a few iterations")
     limits = parser.add_argument_group("solver limits (reaching one is a failure, unless --on-limit project)")
     limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit per stage (>= 1)")
     limits.add_argument("--max-time", type=float, metavar="S",
@@ -294,6 +298,7 @@ def check_arguments(args):
 
 def run(args, progress):
     from .api import parameterize, solve_failure_message
+    from .mesh_io import load_mesh
 
     input_path = Path(args.input)
     output = Path(args.output) if args.output else default_output(input_path)
@@ -323,13 +328,20 @@ def run(args, progress):
             progress.say("sphere-nlp: mapping %s (target %s)" % (input_path, args.target))
         progress.stage(name)
 
+    start = None
+    if args.start:
+        # Read (and its size checked against the mesh) before any solving.
+        try:
+            start, _ = load_mesh(args.start)
+        except errors.MeshInputError as exc:
+            raise errors.UsageError("--start: %s" % exc) from None
     result = parameterize(str(input_path), target=args.target, angle_weight=args.angle_weight,
                           area_weight=args.area_weight, formulation=args.formulation,
                           corner_weighting=args.corner_weighting, corner_floor=args.corner_floor,
                           area_floor=args.area_floor,
                           max_iter=args.max_iter, max_time=args.max_time, on_limit=args.on_limit,
                           progress=progress.iteration,
-                          on_stage=on_stage, check=False)
+                          on_stage=on_stage, start=start, check=False)
     for repair in result.repairs:
         progress.say("repaired: " + repair)
     if not result.success:

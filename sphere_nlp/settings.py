@@ -69,6 +69,10 @@ WARM_START_OPTIONS = MappingProxyType({
 # The area continuation's steps start the barrier small, so that the floor moves other corners little.
 AREA_CONTINUATION_OPTIONS = MappingProxyType({"mu_init": 1e-4})
 
+# An area-mode solve that starts near its targets (``area_walk_distance``) starts its margin stage
+# with a small barrier: IPOPT's mu_init 0.1 first pushed the start's corners into the interior.
+NEAR_START_OPTIONS = MappingProxyType({"mu_init": 1e-4})
+
 
 def _frozen(mapping):
     return field(default_factory=lambda: mapping)
@@ -157,6 +161,14 @@ class SolverSettings:
         ("objective": lower objectives on 8 of 11 original-areas rows and fewer iterations up to
         15k vertices, but more at 43k-50k; docs/tuning.md). The same in equal-areas, whose targets
         are equal.
+    area_walk_distance : float
+        Area modes: the walk is skipped when the start's excesses are already within this of the
+        targets, as the mean |log(e / e')| over the triangles: a start that is itself a map near the
+        area targets (an earlier result, the map of a mesh of the same connectivity and similar
+        shape), which the walk's log-area steps would move away from (0 always walks). The
+        conformal start is at 2-7 on the shared meshes, area-mode optima at 0.02-0.05.
+    near_start_options : mapping
+        Added to the first margin run's IPOPT options when the walk is skipped (a small barrier).
     area_mode_hessian : {"exact", "clipped"}
         The Hessian the area modes hand IPOPT (:class:`sphere_nlp.nlp.LogChordNLP`'s ``hessian``);
         the angle modes use the exact one.
@@ -211,6 +223,8 @@ class SolverSettings:
     area_continuation_floor: bool = True
     area_continuation_options: MappingProxyType = _frozen(AREA_CONTINUATION_OPTIONS)
     area_continuation_weighting: str = "uniform"
+    area_walk_distance: float = 0.1
+    near_start_options: MappingProxyType = _frozen(NEAR_START_OPTIONS)
     area_mode_hessian: str = "clipped"
     projection_iterations: int = 50
     obtuse_angle: float = np.pi / 2
@@ -222,7 +236,7 @@ class SolverSettings:
     def __post_init__(self):
         # A plain dict given for an option mapping is copied read-only, so the object stays frozen.
         for name in ("ipopt_options", "area_mode_ipopt_options", "angle_mode_margin_options",
-                     "warm_start_options", "area_continuation_options"):
+                     "warm_start_options", "area_continuation_options", "near_start_options"):
             object.__setattr__(self, name, MappingProxyType(dict(getattr(self, name))))
 
     def replace(self, **changes):

@@ -8,7 +8,10 @@ formulation, and the three redundant vertex constraints are left out (see
 :class:`sphere_nlp.nlp.LogChordNLP`). Stages:
 
 1. Area modes only (area weight > 0): :func:`area_continuation` walks the excesses from the start's
-   to the targets with a log-area objective, so that the next stage starts near its optimum.
+   to the targets with a log-area objective, so that the next stage starts near its optimum; skipped
+   when the start is already near the targets (:func:`start_area_distance` at most
+   ``settings.area_walk_distance``: an earlier map), whose margin stage then starts with a small
+   barrier.
 2. "margin": IPOPT on the objective (9) and the equalities with every u = alpha - e/2 kept >= a
    margin (corners already below it at the start: >= their own size less 10%, see
    :func:`margin_restart`), inside a trust region on the log excesses (a window of
@@ -304,6 +307,7 @@ class _Context:
     log_u_floor: np.ndarray = None
     log_e_floor: np.ndarray = None
     log_e_lower: np.ndarray = None
+    walk: bool = False
     stages: list = field(default_factory=list)
 
     @classmethod
@@ -322,8 +326,11 @@ class _Context:
         warm_options = dict(options, **settings.warm_start_options)
         warm_options.update(ipopt_options or {})
         first_options = None
-        if not area_mode:
-            first_options = dict(options, **settings.angle_mode_margin_options)
+        walk = area_mode and start_area_distance(initial.excess, targets.excess) > settings.area_walk_distance
+        if not area_mode or not walk:
+            # A start near the optimum: a small first barrier keeps the solve near it.
+            first_options = dict(options, **(settings.near_start_options if area_mode
+                                             else settings.angle_mode_margin_options))
             first_options.update(ipopt_options or {})
         # The three redundant vertex sums (7) left out, at vertices of the valid start (none for
         # the linear guess, whose positions are unknown).
@@ -333,7 +340,7 @@ class _Context:
         return cls(connectivity=connectivity, targets=targets, formulation=formulation, settings=settings,
                    log_u_floor=log_u_floor, log_e_floor=log_e_floor,
                    options=options, warm_options=warm_options, first_options=first_options, progress=progress,
-                   initial=initial, dropped=dropped,
+                   initial=initial, dropped=dropped, walk=walk,
                    hessian=settings.area_mode_hessian if area_mode else "exact",
                    window=settings.excess_window if area_mode else settings.angle_mode_excess_window)
 
@@ -394,7 +401,7 @@ def _solve_log_chord(context, on_limit):
     obtuse = initial.angles > settings.obtuse_angle
     nlp = context.nlp(obtuse)
     x0 = x_start = nlp.pack(initial.angles, initial.excess)
-    if context.targets.area_weight > 0:
+    if context.walk:
         # Each step, and the stages after the walk, flag the corners obtuse at their own start:
         # the areas reshape the triangles.
         weights = continuation_area_weights(context.targets, settings.area_continuation_weighting)
@@ -772,6 +779,23 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
             break
         x, reached = run.x, tau
     return x
+
+
+def start_area_distance(excess, target_excess):
+    """How far a start's excesses are from the targets: the mean |log(e / e')| over the triangles.
+
+    The area modes walk only from starts further than ``SolverSettings.area_walk_distance``: the
+    conformal start is at 2.1 (bunny.off) to 6.9 (knight.off), area-mode optima at 0.02-0.05
+    (docs/tuning.md, "area_walk_distance").
+
+    Examples
+    --------
+    >>> float(start_area_distance(np.array([1.0, 2.0]), np.array([1.0, 2.0 * np.e])))
+    0.5
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.log(np.asarray(excess, float) / np.asarray(target_excess, float))
+    return float(np.mean(np.abs(ratio))) if np.isfinite(ratio).all() else np.inf
 
 
 def continuation_area_weights(targets, weighting="uniform"):

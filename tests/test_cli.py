@@ -193,3 +193,39 @@ def test_subcommand_usage_errors_are_one_line_with_exit_2(argv, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("sphere-nlp %s: error: " % argv[0]), err
+
+
+def test_cli_starts_from_an_earlier_sphere_and_solves_it_again_in_a_few_iterations(tmp_path):
+    # --start reads a sphere written for the mesh; a map solved again from itself skips the area
+    # modes' walk (it is at its targets already) and ends at the same optimum.
+    first, again = tmp_path / "first.off", tmp_path / "again.off"
+    p = run(MODELS / "cylinder.off", "-o", first, "--target", "original-areas", "--report", tmp_path / "1.json")
+    assert p.returncode == 0, p.stderr
+    p = run(MODELS / "cylinder.off", "-o", again, "--target", "original-areas", "--start", first,
+            "--report", tmp_path / "2.json")
+    assert p.returncode == 0, p.stderr
+    report1, report2 = (json.loads((tmp_path / name).read_text()) for name in ("1.json", "2.json"))
+    assert [s["name"] for s in report2["stages"]] == ["margin"]
+    assert report2["iterations"] <= 10 < report1["iterations"]
+    assert report2["objective"] <= report1["objective"] * (1 + 1e-6) and report2["certificate"]["valid"]
+    X, F = load_mesh(again)
+    assert certify(X, F).valid
+
+
+@pytest.mark.parametrize("start, fragment", [("missing.off", "--start: cannot read"),
+                                             ("other.off", "the start has 8 positions, the mesh"),
+                                             ("flat.off", "start positions are not a valid spherical map")])
+def test_cli_refuses_a_start_that_is_not_a_sphere_of_the_mesh(start, fragment, tmp_path, capsys):
+    from sphere_nlp.cli import main
+    from sphere_nlp.mesh_io import write_mesh
+    from sphere_nlp.shapes import octahedron
+
+    V, F = load_mesh(MODELS / "cylinder.off")
+    write_mesh(tmp_path / "flat.off", V, F)                  # the mesh itself: not on the sphere
+    octa_V, octa_F = octahedron()
+    write_mesh(tmp_path / "other.off", np.vstack([octa_V, octa_V[:2] * 0.5]), octa_F)
+    out = tmp_path / "out.off"
+    assert main([str(MODELS / "cylinder.off"), "-o", str(out), "--start", str(tmp_path / start)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("sphere-nlp: error: ") and fragment in err[0], err
+    assert not out.exists()

@@ -360,3 +360,24 @@ def test_weighted_area_continuation_ends_near_the_objectives_optimum():
     assert walk_end["objective"] <= 1.02 * finals["objective"]
     assert walk_end["uniform"] >= 1.1 * finals["uniform"]
     assert finals["objective"] <= finals["uniform"]
+
+
+@pytest.mark.parametrize("mode", ["equal-areas", "original-areas"])
+def test_an_area_mode_started_at_its_own_optimum_skips_the_walk(mode):
+    # A start already near the area targets (here the optimum itself, as when a map is solved
+    # again) goes straight to the margin stage with a small barrier: a few iterations to the same
+    # optimum, where the walk would first move it away (its log-area steps are not (9)).
+    from sphere_nlp.solve import start_area_distance
+
+    V, F = ellipsoid(3, axes=(1.0, 4.0, 0.5))
+    first = sphere_nlp.parameterize((V, F), target=mode)
+    assert start_area_distance(first.excess, first.target_excess) <= SETTINGS.area_walk_distance
+    again = sphere_nlp.parameterize((V, F), target=mode, start=first.vertices)
+    assert [s["name"] for s in again.stages] == ["margin"]
+    assert again.certificate.valid and again.max_constraint_violation <= 1e-8
+    assert again.iterations <= 10 < first.iterations
+    assert again.objective <= first.objective * (1 + 1e-6)
+    # With the distance at 0 the walk always runs.
+    walked = sphere_nlp.parameterize((V, F), target=mode, start=first.vertices,
+                                     settings=SolverSettings(area_walk_distance=0.0))
+    assert walked.stages[0]["name"].startswith("area-continuation")
