@@ -17,7 +17,8 @@ as meshes finish.
 A bad or failing mesh is a row (``bad input``, ``solve failed``, ``certificate failed`` or ``error``)
 with its one-line reason, and the batch goes on. Re-running the same command skips the meshes whose
 certified sphere and report are there (same input file, same target, weights and formulation; an
-unconverged, projected sphere only under the same limits), unless ``--force``.
+unconverged, projected sphere only under the same limits), unless ``--force``. ``--start SPHERE``
+starts every mesh from one sphere, for a dataset whose meshes share its triangles.
 
 Exit status: 0 every mesh has a certified sphere; 1 some mesh failed; 2 bad usage (no input, an
 input that does not exist, two inputs with the same output name, bad options), found before anything
@@ -49,7 +50,7 @@ from pathlib import Path
 
 from . import errors
 from .heap import arrays_on_heap
-from .mesh_io import atomic_output, write_json
+from .mesh_io import atomic_output, load_mesh, write_json
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS
 from .solve import ON_LIMIT
 from .targets import MODES
@@ -85,7 +86,7 @@ TABLE_COLUMNS = (("mesh", "mesh", "%s"), ("vertices", "vertices", "%d"), ("statu
 CERTIFIED = ("certified", "certified, not optimal")
 
 # The options that decide a sphere: a finished one made with other values is not reused.
-RESULT_OPTIONS = ("target", "angle_weight", "area_weight", "formulation")
+RESULT_OPTIONS = ("target", "angle_weight", "area_weight", "formulation", "start")
 LIMIT_OPTIONS = ("max_iter", "max_time", "on_limit")
 
 # One IPOPT at a time in a process, even on a Dask worker that runs several threads.
@@ -350,10 +351,13 @@ def _map_one(task):
     clock = time.perf_counter()
     try:
         batch_info.update(_file_stamp(task["input"]))
+        start = None
+        if options.get("start"):
+            start, _ = load_mesh(options["start"])
         result = parameterize(task["input"], target=options["target"], angle_weight=options["angle_weight"],
                               area_weight=options["area_weight"], formulation=options["formulation"],
                               max_iter=options["max_iter"], max_time=options["max_time"],
-                              on_limit=options["on_limit"], check=False)
+                              on_limit=options["on_limit"], start=start, check=False)
     except (errors.MeshInputError, MemoryError, OSError) as exc:
         if isinstance(exc, errors.MeshInputError):
             status, reason = "bad input", str(exc)
@@ -709,7 +713,7 @@ def _load_client(address):
 def map_meshes(paths, out_dir, target="original-angles", *, angle_weight=None, area_weight=None,
                formulation=DEFAULT_FORMULATION, max_iter=None, max_time=None, on_limit="fail",
                output_format="off", png=False, png_measure="area", force=False, jobs=1, client=None,
-               retries=1, progress=None):
+               retries=1, progress=None, start=None):
     """Map every mesh of ``paths`` onto the sphere, writing into ``out_dir``; the summary rows.
 
     Parameters
@@ -740,6 +744,11 @@ def map_meshes(paths, out_dir, target="original-angles", *, angle_weight=None, a
     progress : callable(event, task, row, counts), optional
         Called with "start" (row None) and "done" for each mesh; ``counts`` is a dict of done,
         failed, running and total.
+    start : str or Path, optional
+        A sphere mesh every solve starts from, for a dataset whose meshes share its triangles (one
+        template's connectivity): a mesh's map is then found near it, and in the area modes without
+        the walk when it is near that mesh's targets (:func:`sphere_nlp.parameterize`'s ``start``).
+        A mesh it is not a valid map of is a "bad input" row.
 
     Returns
     -------
@@ -778,9 +787,15 @@ def map_meshes(paths, out_dir, target="original-angles", *, angle_weight=None, a
     paths = expand_inputs(paths, exclude=out_dir)
     if not paths:
         raise errors.UsageError("no input mesh given")
+    if start is not None:
+        start = os.path.abspath(start)
+        try:
+            load_mesh(start)                      # readable, before anything runs
+        except errors.MeshInputError as exc:
+            raise errors.UsageError("start: %s" % exc) from None
     options = {"target": target, "angle_weight": angle_weight, "area_weight": area_weight,
                "formulation": formulation, "max_iter": max_iter, "max_time": max_time,
-               "on_limit": on_limit, "png_measure": png_measure}
+               "on_limit": on_limit, "png_measure": png_measure, "start": start}
     tasks = plan(paths, out_dir, options, png=png, output_format=output_format)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -944,6 +959,9 @@ def build_parser():
     method.add_argument("--area-weight", type=float, metavar="W", help="weight of the area term")
     method.add_argument("--formulation", default=DEFAULT_FORMULATION, choices=FORMULATIONS, metavar="F",
                         help="log-chord (default), substituted or faithful")
+    method.add_argument("--start", metavar="SPHERE",
+                        help="start every mesh from this sphere (meshes sharing its triangles, e.g. subjects "
+                             "on one template); area modes then skip their walk where it is near")
     limits = parser.add_argument_group("solver limits, per mesh")
     limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit per stage")
     limits.add_argument("--max-time", type=float, metavar="S", help="wall-clock limit per IPOPT stage, seconds")
@@ -996,7 +1014,7 @@ def main(argv=None):
                           max_iter=args.max_iter, max_time=args.max_time, on_limit=args.on_limit,
                           output_format=args.format, png=args.png, png_measure=args.png_measure,
                           force=args.force, jobs=args.jobs, client=client, retries=args.retries,
-                          progress=progress)
+                          progress=progress, start=args.start)
     except errors.SphereNLPError as exc:
         progress.finish_line()
         if args.debug:

@@ -217,3 +217,27 @@ def test_solves_keep_arrays_on_the_heap_and_restore_glibcs_defaults_after():
     block = np.ones(2 ** 23)
     assert libc.mallinfo2().hblks == mapped + 1       # the defaults are back: mapped again
     del block
+
+
+def test_batch_starts_every_mesh_of_a_shared_connectivity_from_one_sphere(tmp_path, capsys):
+    # A dataset on one template's triangles: every mesh starts from the template's sphere. The
+    # template itself is solved again in a few iterations (area modes: no walk near the targets), a
+    # stretched copy is mapped near it, and a mesh with other triangles is a "bad input" row.
+    data = tmp_path / "data"
+    data.mkdir()
+    V, F = load_mesh(MODELS / "cylinder.off")
+    write_mesh(data / "template.off", V, F)
+    write_mesh(data / "stretched.off", V * [1.0, 1.0, 1.15], F)
+    write_mesh(data / "other.off", *icosphere(1))
+    first = map_meshes([data / "template.off"], tmp_path / "first", target="original-areas")
+    sphere = tmp_path / "first" / first[0]["output"]
+    rows = {r["mesh"]: r for r in map_meshes([data], tmp_path / "out", target="original-areas", start=sphere)}
+    assert rows["template"]["status"] == rows["stretched"]["status"] == "certified"
+    assert rows["template"]["iterations"] <= 10 < first[0]["iterations"]
+    for name in ("template", "stretched"):
+        X, G = load_mesh(tmp_path / "out" / rows[name]["output"])
+        assert certify(X, G).valid and np.array_equal(G, F)
+    assert rows["other"]["status"] == "bad input" and "the start has" in rows["other"]["reason"]
+    # An unreadable start is bad usage, found before anything runs.
+    assert batch_main([str(data), "--out", str(tmp_path / "none"), "--start", str(tmp_path / "no.off")]) == 2
+    assert "start: cannot read" in capsys.readouterr().err and not (tmp_path / "none").exists()

@@ -72,7 +72,7 @@ def test_restart_from_a_solution_stays_there(mode):
 def test_start_positions_are_checked():
     V, F = ellipsoid(1)
     good = sphere_nlp.parameterize((V, F), target="original-angles")
-    with pytest.raises(errors.UsageError, match="one row per input vertex"):
+    with pytest.raises(errors.UsageError, match="the start has 3 positions, the mesh 42 vertices"):
         sphere_nlp.parameterize((V, F), start=np.zeros((3, 3)))
     mirrored = input_positions(good) * np.array([-1.0, 1.0, 1.0])      # every triangle flipped
     with pytest.raises(errors.UsageError, match="not a valid spherical map"):
