@@ -380,9 +380,9 @@ def _start_in_repaired_numbering(start, prepared):
     if start.ndim == 2 and start.shape == (n_repaired, 3) and n_repaired != len(vertex_map):
         return start
     if start.shape != (len(vertex_map), 3):
+        rows = start.shape[0] if start.ndim == 2 and start.shape[1] == 3 else "x".join(map(str, start.shape))
         raise errors.UsageError("the start has %s positions, the mesh %d vertices: a start gives one position "
-                                "per vertex" % ("x".join(map(str, start.shape)) if start.ndim != 2 or
-                                                start.shape[1] != 3 else start.shape[0], len(vertex_map)))
+                                "per vertex" % (rows, len(vertex_map)))
     positions = np.zeros((n_repaired, 3))
     kept = vertex_map >= 0
     positions[vertex_map[kept]] = start[kept]

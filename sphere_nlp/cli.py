@@ -330,7 +330,7 @@ def run(args, progress):
 
     start = None
     if args.start:
-        # Read (and its size checked against the mesh) before any solving.
+        # Read here; parameterize checks it against the mesh before the solve is announced.
         try:
             start, _ = load_mesh(args.start)
         except errors.MeshInputError as exc:
