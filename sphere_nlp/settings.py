@@ -111,6 +111,8 @@ class SolverSettings:
     corner_floor : float
         Angle modes: every corner keeps u = alpha - e/2 >= this fraction of its target angle beta
         (and >= ``angle_margin``), a plain bound in the log formulation; 0 leaves the margin alone.
+        The bounds are imposed only if the solve without them ends with a corner below its floor,
+        in a second pass from the start (:func:`sphere_nlp.solve.solve_angles`).
     area_mode_corner_floor : float
         The same in the area modes.
     area_floor : float

@@ -48,7 +48,7 @@ from fractions import Fraction
 import numpy as np
 
 from . import interrupts
-from .nlp import DEFAULT_FORMULATION, AngleNLP, LogChordNLP
+from .nlp import DEFAULT_FORMULATION, AngleNLP, LogChordNLP, status_kind
 from .errors import UsageError
 from .heap import arrays_on_heap
 from .settings import DEFAULT_SETTINGS, SolverSettings
@@ -250,7 +250,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         context = _Context.make(connectivity, targets, formulation, settings, ipopt_options, max_iter, max_time,
                                 progress, initial)
         if formulation == "log-chord":
-            return _solve_log_chord(context, on_limit)
+            return _solve_with_corner_floor(context, on_limit)
         return _solve_paper_form(context)
 
 
@@ -392,6 +392,44 @@ def run_ipopt(nlp, name, x, settings, stages=None, **solve_keywords):
     if stages is not None:
         stages.append(_stage_record(name, run))
     return run
+
+
+def _solve_with_corner_floor(context, on_limit):
+    """The log-chord solve, with the corner floors as bounds only where the optimum needs them.
+
+    The solve runs first with every corner bounded by the margin alone. Only if its result has a
+    corner below its floor (``corner_floor`` x beta) is the mesh solved again from the start with
+    the floors as bounds; that second pass's stages are named "corner-floor-<stage>". The floors
+    rarely bind at the optimum (on the shared meshes only knight.off and cheburashka.off in
+    original-angles), but as bounds from the start they obstruct the path to it: equal-angles
+    knight.off 88 iterations against 30, max_planck.obj 109 against 54, the Loop-subdivided
+    armadillo not converged in 25 minutes against 60 iterations, to the same optima
+    (docs/tuning.md).
+    """
+    floors, margin = context.log_u_floor, np.log(context.settings.angle_margin)
+    if floors is None or not np.any(floors > margin):
+        return _solve_log_chord(context, on_limit)
+    context.log_u_floor = np.full_like(floors, margin)
+    first = _solve_log_chord(context, on_limit)
+    context.log_u_floor = floors
+    below = _corners_below(first.angles, first.excess, floors)
+    # A first pass stopped by the caller's limits is the answer (a second would hit them again).
+    if (first.success and not below) or status_kind(first.status) == "limit" or interrupts.deadline_passed():
+        first.floor_corners = _floor_counts(context, first.angles, first.excess)[0]
+        return first
+    done = len(context.stages)
+    second = _solve_log_chord(context, on_limit)
+    for stage in context.stages[done:]:
+        stage["name"] = "corner-floor-" + stage["name"]
+    second.iterations = sum(stage["iterations"] for stage in context.stages)
+    return second
+
+
+def _corners_below(angles, excess, log_u_floor):
+    """How many corners have u = alpha - e/2 below their floor (log_u_floor, (3t,))."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_u = np.log((angles - excess[:, None] / 2).ravel())
+    return int(np.sum(~(log_u >= log_u_floor - 1e-9)))
 
 
 def _solve_log_chord(context, on_limit):
@@ -877,6 +915,14 @@ def _stage_record(name, run):
                 time_s=run.time_s, build_s=run.build_s)
 
 
+def _floor_counts(context, angles, excess):
+    """Corners and triangles at, below or within 1% of their floors (context.log_u_floor, log_e_floor)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = (angles - excess[:, None] / 2).ravel()
+        return (int(np.sum(np.log(u) <= context.log_u_floor + 0.01)),
+                int(np.sum(np.log(excess) <= context.log_e_floor + 0.01)))
+
+
 def _solution(context, angles, excess, run, stopped_status=None):
     """The AngleSolution of the last run; ``stopped_status``: the run is the projection of a stage
     that IPOPT stopped with that status (see :func:`project_onto_constraints`)."""
@@ -886,10 +932,7 @@ def _solution(context, angles, excess, run, stopped_status=None):
     initial = context.initial
     floor_corners = floor_triangles = 0
     if context.formulation == "log-chord":
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = (angles - excess[:, None] / 2).ravel()
-            floor_corners = int(np.sum(np.log(u) <= context.log_u_floor + 0.01))
-            floor_triangles = int(np.sum(np.log(excess) <= context.log_e_floor + 0.01))
+        floor_corners, floor_triangles = _floor_counts(context, angles, excess)
     return AngleSolution(angles=angles, excess=excess, success=success,
                          floor_corners=floor_corners, floor_triangles=floor_triangles,
                          status=stopped_status or run.status, converged=success and stopped_status is None,

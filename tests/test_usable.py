@@ -76,6 +76,22 @@ def test_floors_hold_as_bounds_and_are_counted():
     free = parameterize((V, F), "original-angles", corner_floor=0, area_floor=0)
     assert free.objective < result.objective
     assert result.report()["floor_corners"] == result.floor_corners
+    # The corner floor binds, so the solve without it was followed by a second pass with it.
+    names = [stage["name"] for stage in result.stages]
+    assert "margin" in names and names[-1].startswith("corner-floor-")
+    assert result.iterations == sum(stage["iterations"] for stage in result.stages)
+
+
+def test_a_corner_floor_that_does_not_bind_costs_no_second_pass():
+    # Equal angles on the long ellipsoid: its optimum keeps every corner above 0.1 beta, so the one
+    # solve without the floor is the answer, and it is the optimum of the solve with the floor.
+    V, F = ellipsoid(2, axes=(1.0, 3.0, 0.6))
+    result = parameterize((V, F), "equal-angles")
+    assert not any(stage["name"].startswith("corner-floor-") for stage in result.stages)
+    u = result.angles - result.excess[:, None] / 2
+    assert (u >= DEFAULT_SETTINGS.corner_floor * result.target_angles).all()
+    free = parameterize((V, F), "equal-angles", corner_floor=0)
+    assert result.objective == pytest.approx(free.objective, rel=1e-9)
 
 
 @pytest.mark.parametrize("bad", [-0.1, 1.0, "0.1"])
