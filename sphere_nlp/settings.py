@@ -111,8 +111,10 @@ class SolverSettings:
     corner_floor : float
         Angle modes: every corner keeps u = alpha - e/2 >= this fraction of its target angle beta
         (and >= ``angle_margin``), a plain bound in the log formulation; 0 leaves the margin alone.
-        The bounds are imposed only if the solve without them ends with a corner below its floor,
-        in a second pass from the start (:func:`sphere_nlp.solve.solve_angles`).
+    corner_floor_pass : {"start", "needed"}
+        When the corner floors become bounds: from the start ("start"), or only if the solve
+        without them ends with a corner below its floor, in a second pass from the start
+        ("needed"; faster on some meshes, much slower on others: docs/tuning.md).
     area_mode_corner_floor : float
         The same in the area modes.
     area_floor : float
@@ -207,6 +209,7 @@ class SolverSettings:
     window_growth: float = 2.0
     angle_margin: float = 1e-4
     corner_floor: float = 0.1
+    corner_floor_pass: str = "start"
     area_mode_corner_floor: float = 0.0
     area_floor: float = 1e-12
     max_floor_lift: float = np.inf
@@ -240,6 +243,8 @@ class SolverSettings:
         for name in ("ipopt_options", "area_mode_ipopt_options", "angle_mode_margin_options",
                      "warm_start_options", "area_continuation_options", "near_start_options"):
             object.__setattr__(self, name, MappingProxyType(dict(getattr(self, name))))
+        if self.corner_floor_pass not in ("start", "needed"):
+            raise ValueError("corner_floor_pass must be 'start' or 'needed', not %r" % (self.corner_floor_pass,))
 
     def replace(self, **changes):
         """A copy with ``changes`` applied (:func:`dataclasses.replace`)."""

@@ -395,19 +395,19 @@ def run_ipopt(nlp, name, x, settings, stages=None, **solve_keywords):
 
 
 def _solve_with_corner_floor(context, on_limit):
-    """The log-chord solve, with the corner floors as bounds only where the optimum needs them.
+    """The log-chord solve, with the corner floors as bounds from the start (``corner_floor_pass``
+    "start", the default) or only where the optimum needs them ("needed").
 
-    The solve runs first with every corner bounded by the margin alone. Only if its result has a
-    corner below its floor (``corner_floor`` x beta) is the mesh solved again from the start with
-    the floors as bounds; that second pass's stages are named "corner-floor-<stage>". The floors
-    rarely bind at the optimum (on the shared meshes only knight.off and cheburashka.off in
-    original-angles), but as bounds from the start they obstruct the path to it: equal-angles
-    knight.off 88 iterations against 30, max_planck.obj 109 against 54, the Loop-subdivided
-    armadillo not converged in 25 minutes against 60 iterations, to the same optima
-    (docs/tuning.md).
+    "needed": the solve runs first with every corner bounded by the margin alone; only if its
+    result has a corner below its floor (``corner_floor`` x beta) is the mesh solved again from
+    the start with the floors as bounds, in stages named "corner-floor-<stage>". The floors rarely
+    bind at the optimum, but as bounds from the start they can obstruct the path to it (the
+    Loop-subdivided armadillo, equal-angles: converged in 60 iterations this way, not in 25
+    minutes with them), while on other meshes they keep the path from collapsing corners
+    (nefertiti.obj, equal-angles: 85 iterations with them, over 200 without); docs/tuning.md.
     """
     floors, margin = context.log_u_floor, np.log(context.settings.angle_margin)
-    if floors is None or not np.any(floors > margin):
+    if context.settings.corner_floor_pass == "start" or floors is None or not np.any(floors > margin):
         return _solve_log_chord(context, on_limit)
     context.log_u_floor = np.full_like(floors, margin)
     first = _solve_log_chord(context, on_limit)

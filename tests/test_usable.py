@@ -10,7 +10,7 @@ from sphere_nlp.errors import UsageError
 from sphere_nlp.geometry import corner_angles
 from sphere_nlp.metrics import usability_summary
 from sphere_nlp.nlp import AngleNLP
-from sphere_nlp.settings import DEFAULT_SETTINGS
+from sphere_nlp.settings import DEFAULT_SETTINGS, SolverSettings
 from sphere_nlp.solve import objective_value
 from sphere_nlp.targets import make_targets
 
@@ -76,22 +76,29 @@ def test_floors_hold_as_bounds_and_are_counted():
     free = parameterize((V, F), "original-angles", corner_floor=0, area_floor=0)
     assert free.objective < result.objective
     assert result.report()["floor_corners"] == result.floor_corners
-    # The corner floor binds, so the solve without it was followed by a second pass with it.
-    names = [stage["name"] for stage in result.stages]
+    # With the floors imposed only where needed: they bind, so the solve without them is followed
+    # by a second pass with them, which ends at the same optimum.
+    needed = parameterize((V, F), "original-angles", corner_floor=0.7, area_floor=0.003,
+                          settings=SolverSettings(corner_floor_pass="needed"))
+    names = [stage["name"] for stage in needed.stages]
     assert "margin" in names and names[-1].startswith("corner-floor-")
-    assert result.iterations == sum(stage["iterations"] for stage in result.stages)
+    assert needed.iterations == sum(stage["iterations"] for stage in needed.stages)
+    assert needed.objective == pytest.approx(result.objective, rel=1e-6)
+    assert needed.floor_corners == result.floor_corners
 
 
-def test_a_corner_floor_that_does_not_bind_costs_no_second_pass():
+def test_corner_floors_imposed_where_needed_cost_no_second_pass_where_they_do_not_bind():
     # Equal angles on the long ellipsoid: its optimum keeps every corner above 0.1 beta, so the one
     # solve without the floor is the answer, and it is the optimum of the solve with the floor.
     V, F = ellipsoid(2, axes=(1.0, 3.0, 0.6))
-    result = parameterize((V, F), "equal-angles")
+    result = parameterize((V, F), "equal-angles", settings=SolverSettings(corner_floor_pass="needed"))
     assert not any(stage["name"].startswith("corner-floor-") for stage in result.stages)
     u = result.angles - result.excess[:, None] / 2
     assert (u >= DEFAULT_SETTINGS.corner_floor * result.target_angles).all()
-    free = parameterize((V, F), "equal-angles", corner_floor=0)
-    assert result.objective == pytest.approx(free.objective, rel=1e-9)
+    floored = parameterize((V, F), "equal-angles")
+    assert result.objective == pytest.approx(floored.objective, rel=1e-9)
+    with pytest.raises(ValueError, match="corner_floor_pass"):
+        SolverSettings(corner_floor_pass="later")
 
 
 @pytest.mark.parametrize("bad", [-0.1, 1.0, "0.1"])
