@@ -5,8 +5,8 @@ factorization, numpy's temporaries at each evaluation. glibc serves a block abov
 threshold (at most 32 MiB) with a fresh mmap and returns it on free, so the same pages fault in
 again every iteration: hand_closed.obj original-areas spent 16 of its 110 s in the kernel, and
 ran in 88 s with mmap off and freed memory kept (bunny.off 18-19 s against 14-16 s; the same
-iterations and optimum; peak memory 4-18% higher on the benchmark rows). Under Dask's nanny, which pins the trim
-threshold at 64 KiB, even blocks of 128 KiB were mapped afresh.
+iterations and optimum; peak memory 4-18% higher on the benchmark rows). Under Dask's nanny,
+which pins the trim threshold at 64 KiB, even blocks of 128 KiB were mapped afresh.
 
 :func:`arrays_on_heap` sets glibc's ``mallopt`` for the duration of a solve and restores the
 defaults after it, handing freed memory back to the system (``malloc_trim``). The settings are

@@ -287,9 +287,10 @@ class _Context:
     """What the stages of one solve share: the problem, the IPOPT options, the log of runs.
 
     ``options`` are every run's IPOPT options, ``warm_options`` those of a run warm-started from
-    another's multipliers, ``first_options`` those of the first margin run (the angle modes' small
-    initial barrier; None: ``options``); ``window`` is the half-width of the trust region on the
-    log excesses; ``stages`` collects the record of every run.
+    another's multipliers, ``first_options`` those of the first margin run (a small initial barrier
+    in the angle modes and after a skipped walk; None: ``options``); ``walk`` whether the area
+    modes walk first; ``window`` is the half-width of the trust region on the log excesses;
+    ``stages`` collects the record of every run.
     """
 
     connectivity: object
@@ -327,7 +328,7 @@ class _Context:
         warm_options.update(ipopt_options or {})
         first_options = None
         walk = area_mode and start_area_distance(initial.excess, targets.excess) > settings.area_walk_distance
-        if not area_mode or not walk:
+        if not walk:
             # A start near the optimum: a small first barrier keeps the solve near it.
             first_options = dict(options, **(settings.near_start_options if area_mode
                                              else settings.angle_mode_margin_options))
@@ -407,29 +408,27 @@ def _solve_with_corner_floor(context, on_limit):
     (nefertiti.obj, equal-angles: 85 iterations with them, over 200 without); docs/tuning.md.
     """
     floors, margin = context.log_u_floor, np.log(context.settings.angle_margin)
-    if context.settings.corner_floor_pass == "start" or floors is None or not np.any(floors > margin):
+    if context.settings.corner_floor_pass == "start" or not np.any(floors > margin):
         return _solve_log_chord(context, on_limit)
     context.log_u_floor = np.full_like(floors, margin)
     first = _solve_log_chord(context, on_limit)
     context.log_u_floor = floors
-    below = _corners_below(first.angles, first.excess, floors)
+    below = np.any(~(_log_u(first.angles, first.excess) >= floors - 1e-9))
     # A first pass stopped by the caller's limits is the answer (a second would hit them again).
     if (first.success and not below) or status_kind(first.status) == "limit" or interrupts.deadline_passed():
         first.floor_corners = _floor_counts(context, first.angles, first.excess)[0]
         return first
     done = len(context.stages)
-    second = _solve_log_chord(context, on_limit)
+    second = _solve_log_chord(context, on_limit)      # its iterations count both passes' stages
     for stage in context.stages[done:]:
         stage["name"] = "corner-floor-" + stage["name"]
-    second.iterations = sum(stage["iterations"] for stage in context.stages)
     return second
 
 
-def _corners_below(angles, excess, log_u_floor):
-    """How many corners have u = alpha - e/2 below their floor (log_u_floor, (3t,))."""
+def _log_u(angles, excess):
+    """log u = log(alpha - e/2) of every corner, (3t,) (nan or -inf where u <= 0)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        log_u = np.log((angles - excess[:, None] / 2).ravel())
-    return int(np.sum(~(log_u >= log_u_floor - 1e-9)))
+        return np.log((angles - excess[:, None] / 2).ravel())
 
 
 def _solve_log_chord(context, on_limit):
@@ -918,8 +917,7 @@ def _stage_record(name, run):
 def _floor_counts(context, angles, excess):
     """Corners and triangles at, below or within 1% of their floors (context.log_u_floor, log_e_floor)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = (angles - excess[:, None] / 2).ravel()
-        return (int(np.sum(np.log(u) <= context.log_u_floor + 0.01)),
+        return (int(np.sum(_log_u(angles, excess) <= context.log_u_floor + 0.01)),
                 int(np.sum(np.log(excess) <= context.log_e_floor + 0.01)))
 
 
