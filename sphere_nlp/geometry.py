@@ -84,3 +84,26 @@ def spherical_angles(positions, faces):
     tb = db - np.einsum("tjk,tjk->tj", db, a)[..., None] * a
     tc = dc - np.einsum("tjk,tjk->tj", dc, a)[..., None] * a
     return np.arctan2(np.einsum("tjk,tjk->tj", a, np.cross(tb, tc)), np.einsum("tjk,tjk->tj", tb, tc))
+
+
+def triangles_with_angles(angles):
+    """Planar triangles with the given corner angles, (t, 3, 3) corner positions (z = 0).
+
+    Each row of ``angles`` is scaled to sum to pi first (the spherical targets of the equal
+    modes sum to slightly more), then the sides follow from the law of sines. For the 3D corner
+    angles this is the input triangle up to a similarity.
+
+    Examples
+    --------
+    >>> P = triangles_with_angles(np.array([[np.pi / 2, np.pi / 4, np.pi / 4]]))
+    >>> np.linalg.norm(P[0, 1:] - P[0, 0], axis=1).round(12)     # the legs of a right isosceles triangle
+    array([0.70710678, 0.70710678])
+    """
+    beta = np.asarray(angles, dtype=float)
+    beta = beta * (np.pi / beta.sum(axis=1, keepdims=True))
+    side = np.sin(beta)                      # side k is opposite corner k
+    P = np.zeros((len(beta), 3, 3))
+    P[:, 1, 0] = side[:, 2]
+    P[:, 2, 0] = side[:, 1] * np.cos(beta[:, 0])
+    P[:, 2, 1] = side[:, 1] * np.sin(beta[:, 0])
+    return P

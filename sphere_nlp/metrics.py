@@ -15,7 +15,8 @@ unsigned, so it cannot see a flip; the ``flipped`` count of the summary does).
 import numpy as np
 
 from .certify import certify
-from .geometry import corner_angles, signed_solid_angles, spherical_angles, triangle_areas  # noqa: F401
+from .geometry import (corner_angles, signed_solid_angles, spherical_angles, triangle_areas,  # noqa: F401
+                       triangles_with_angles)
 
 SUMMARY_KEYS = ("valid", "flipped", "degree", "max_norm_error", "mean_abs_angle_diff_deg",
                 "max_abs_angle_diff_deg", "qc_mean", "qc_max", "mean_abs_log_area", "area_cv",
@@ -100,6 +101,31 @@ def quasi_conformal_ratio(mesh_vertices, sphere_vertices, faces):
     bad = ~(signed_solid_angles(sphere_vertices, faces) > 0) | ~(Q > R) | ~np.isfinite(ratio)
     ratio[bad] = np.inf
     return ratio
+
+
+def target_shape_ratio(sphere_vertices, faces, target_angles):
+    """:func:`quasi_conformal_ratio` of each triangle's affine map from its target shape (the planar
+    triangle with the target angles, :func:`sphere_nlp.geometry.triangles_with_angles`) to its chord triangle, (t,).
+
+    In the angle modes this measures how far the map is from the triangles it was asked for; for
+    the original angles it equals :func:`quasi_conformal_ratio`, while for equal angles it does not
+    charge the map for regularising the input's slivers, as the 3D ratio does.
+
+    Examples
+    --------
+    >>> S = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    >>> F = np.array([[0, 1, 2]])
+    >>> target_shape_ratio(S, F, np.full((1, 3), np.pi / 3)).round(12)   # equilateral, as asked
+    array([1.])
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    sphere_vertices = np.asarray(sphere_vertices, dtype=float)
+    t = len(faces)
+    corners = np.arange(3 * t).reshape(t, 3)
+    # Each triangle's corners copied apart: the targets share no vertices (the copies on the sphere
+    # are the same points, so the orientation test is unchanged).
+    return quasi_conformal_ratio(triangles_with_angles(target_angles).reshape(-1, 3),
+                                 sphere_vertices[faces].reshape(-1, 3), corners)
 
 
 def normalised_areas_3d(mesh_vertices, faces):
@@ -217,8 +243,14 @@ def distortion_summary(mesh_vertices, sphere_vertices, faces):
     return summary
 
 
-USABILITY_KEYS = ("valid", "flipped", "qc_max", "corners_below_fraction", "min_area_ratio",
-                  "mean_abs_angle_diff_deg", "mean_abs_log_area")
+USABILITY_KEYS = ("valid", "flipped", "qc_max", "qc_max_target", "sliver_targets", "corners_below_fraction",
+                  "min_area_ratio", "mean_abs_angle_diff_deg", "mean_abs_log_area")
+
+# Targets with a corner below this (radians, 1 degree) are slivers: a map that keeps such a corner to
+# within a few per cent still shears the triangle by a ratio in the hundreds (koala.obj's worst, a
+# 0.08/179.84/0.08-degree triangle kept to 0.003 degrees, measures 1,556), so the shape ratio is
+# reported over the other triangles and the slivers are held by the corner count instead.
+SLIVER_TARGET_ANGLE = np.radians(1.0)
 
 
 def usability_summary(mesh_vertices, sphere_vertices, faces, target_angles=None, corner_fraction=0.1):
@@ -241,7 +273,10 @@ def usability_summary(mesh_vertices, sphere_vertices, faces, target_angles=None,
     -------
     dict (JSON-safe)
         ``valid``, ``flipped`` (the certificate); ``qc_max`` (worst :func:`quasi_conformal_ratio`,
-        3D triangle to chord triangle; None if some triangle is flipped); ``corners_below_fraction``
+        3D triangle to chord triangle; None if some triangle is flipped); ``qc_max_target`` (worst
+        :func:`target_shape_ratio`, target shape to chord triangle, over the triangles whose targets
+        have no corner below 1 degree; None if flipped or if every target is such a sliver) and
+        ``sliver_targets`` (how many triangles that leaves out); ``corners_below_fraction``
         (spherical corners measured from the positions below ``corner_fraction`` x target);
         ``min_area_ratio`` (smallest signed solid angle over the mean 4 pi / t); the means
         ``mean_abs_angle_diff_deg`` and ``mean_abs_log_area`` of :func:`distortion_summary`.
@@ -251,8 +286,8 @@ def usability_summary(mesh_vertices, sphere_vertices, faces, target_angles=None,
     >>> from sphere_nlp.shapes import octahedron
     >>> V, F = octahedron()
     >>> s = usability_summary(V, V, F)
-    >>> s["qc_max"], s["corners_below_fraction"], round(s["min_area_ratio"], 12)
-    (1.0, 0, 1.0)
+    >>> s["qc_max"], round(s["qc_max_target"], 12), s["corners_below_fraction"], round(s["min_area_ratio"], 12)
+    (1.0, 1.0, 0, 1.0)
     """
     mesh_vertices, faces = _arrays(mesh_vertices, faces)
     sphere_vertices = np.asarray(sphere_vertices, dtype=float)
@@ -261,11 +296,16 @@ def usability_summary(mesh_vertices, sphere_vertices, faces, target_angles=None,
     summary = distortion_summary(mesh_vertices, sphere_vertices, faces)
     qc = quasi_conformal_ratio(mesh_vertices, sphere_vertices, faces)
     omega = signed_solid_angles(sphere_vertices, faces)
-    below = spherical_angles(sphere_vertices, faces) < corner_fraction * np.asarray(target_angles, float)
+    target_angles = np.asarray(target_angles, float)
+    below = spherical_angles(sphere_vertices, faces) < corner_fraction * target_angles
+    shaped = target_angles.min(axis=1) >= SLIVER_TARGET_ANGLE
+    shape_ratio = target_shape_ratio(sphere_vertices, faces, target_angles)[shaped]
     return {
         "valid": summary["valid"],
         "flipped": summary["flipped"],
         "qc_max": _json_float(qc.max()),
+        "qc_max_target": _json_float(shape_ratio.max()) if len(shape_ratio) else None,
+        "sliver_targets": int((~shaped).sum()),
         "corners_below_fraction": int(below.sum()),
         "min_area_ratio": _json_float(omega.min() / (4 * np.pi / len(faces))),
         "mean_abs_angle_diff_deg": summary["mean_abs_angle_diff_deg"],

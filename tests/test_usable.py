@@ -8,7 +8,7 @@ from sphere_nlp.api import parameterize
 from sphere_nlp.connectivity import build_connectivity
 from sphere_nlp.errors import UsageError
 from sphere_nlp.geometry import corner_angles
-from sphere_nlp.metrics import usability_summary
+from sphere_nlp.metrics import quasi_conformal_ratio, target_shape_ratio, usability_summary
 from sphere_nlp.nlp import AngleNLP
 from sphere_nlp.settings import DEFAULT_SETTINGS, SolverSettings
 from sphere_nlp.solve import objective_value
@@ -125,8 +125,35 @@ def test_usability_summary_of_a_collapsed_triangle():
     assert bad["qc_max"] > 5 * good["qc_max"]
     assert bad["corners_below_fraction"] > good["corners_below_fraction"]
     assert bad["min_area_ratio"] < good["min_area_ratio"]
-    assert set(good) == {"valid", "flipped", "qc_max", "corners_below_fraction", "min_area_ratio",
-                         "mean_abs_angle_diff_deg", "mean_abs_log_area"}
+    assert set(good) == {"valid", "flipped", "qc_max", "qc_max_target", "sliver_targets", "corners_below_fraction",
+                         "min_area_ratio", "mean_abs_angle_diff_deg", "mean_abs_log_area"}
+    assert np.isclose(bad["qc_max_target"], bad["qc_max"], rtol=1e-10) and bad["sliver_targets"] == 0  # 3D targets
+
+
+def test_target_shape_ratio_is_the_3d_ratio_for_the_input_angles():
+    # Targets equal to the 3D corner angles describe the input triangles up to similarity.
+    V, F = ellipsoid(2, (1.0, 0.6, 0.3))
+    P = V / np.linalg.norm(V, axis=1, keepdims=True)
+    expected = quasi_conformal_ratio(V, P, F)
+    assert np.allclose(target_shape_ratio(P, F, corner_angles(V, F)), expected, rtol=1e-10)
+    assert expected.max() > 1.5                       # a real test: the projection shears them
+
+
+def test_a_sliver_made_regular_is_charged_in_3d_but_not_against_equal_targets():
+    # One face of the octahedron, the input a 0.1/179.8/0.1-degree sliver: mapped onto the octant
+    # (an equilateral chord triangle) its 3D ratio is in the hundreds, while against equal targets,
+    # which is what equal-angles asks for, the map is exact.
+    S = np.eye(3)
+    F = np.array([[0, 1, 2]])
+    sliver = np.array([[0.0, 0, 0], [1, 0, 0], [0.5, 0.5 * np.tan(np.radians(0.1)), 0]])
+    equal = np.full((1, 3), np.pi / 2)                # the octant's spherical corners
+    assert quasi_conformal_ratio(sliver, S, F)[0] > 500
+    assert abs(target_shape_ratio(S, F, equal)[0] - 1) < 1e-12
+    check = usability_summary(sliver, S, F, target_angles=equal)
+    assert check["sliver_targets"] == 0 and abs(check["qc_max_target"] - 1) < 1e-12
+    # Against the sliver's own angles the triangle is a sliver target: left out, and counted.
+    own = usability_summary(sliver, S, F)
+    assert own["sliver_targets"] == 1 and own["qc_max_target"] is None
 
 
 def test_tentacle_mesh_is_closed_genus_zero_with_thin_limbs():
@@ -216,16 +243,21 @@ def test_default_mode_is_usable_on_every_shared_mesh(name):
     assert check["min_area_ratio"] >= DEFAULT_SETTINGS.area_floor * (1 - 1e-6)
     assert check["corners_below_fraction"] == 0
     assert check["mean_abs_angle_diff_deg"] <= 1.1 * PAPER_ANGLE_DISTORTION[name.split(".")[0]]
-    if name not in ("koala.obj", "cheburashka.off", "max_planck.obj"):    # QC max 1,556, 85, 60 (docs/tuning.md)
-        assert check["qc_max"] <= 50
+    # Against the target shapes, slivers (a corner below 1 degree) held by the corner count above:
+    # the 3D ratio of koala and max_planck is 1,556 and 60 on input slivers whose corners the map
+    # keeps to within a few per cent. cheburashka's 85 is the map's own: a 3.8/2.7/173.5-degree
+    # triangle ends at 1.4/2.0/176.6 (its neighbours have corners on the 0.1 x target floor).
+    if name != "cheburashka.off":
+        assert check["qc_max_target"] <= 50
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ALL_SHARED[:10])
 def test_equal_angles_keep_every_corner_and_triangle_above_their_floors(name):
     # The second angle mode on the shared meshes up to 15k vertices: certified, no corner below
-    # 0.1 x its target, no triangle below the area floor (its QC max is above 50 on max_planck,
-    # 389, and cheburashka, 76: benchmarks/results.md).
+    # 0.1 x its target, no triangle below the area floor, and triangles close to the equal-angle
+    # shapes asked for (against the 3D triangles the ratio is 389 on max_planck: input slivers
+    # made regular, as the mode asks).
     from conftest import shared_mesh
 
     result = parameterize(shared_mesh(name), "equal-angles")
@@ -233,3 +265,4 @@ def test_equal_angles_keep_every_corner_and_triangle_above_their_floors(name):
     check = result.usability()
     assert check["min_area_ratio"] >= DEFAULT_SETTINGS.area_floor * (1 - 1e-6)
     assert check["corners_below_fraction"] == 0
+    assert check["qc_max_target"] <= 50
