@@ -8,7 +8,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .geometry import scatter_to_vertices, triangle_areas
+from .geometry import scatter_to_vertices, triangle_areas, triangles_with_angles
 
 
 # --- shared finite-element pieces -------------------------------------------------------------------
@@ -29,13 +29,16 @@ def cotan_laplacian(vertices, faces):
     """
     vertices = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
-    P = vertices[faces]
-    to_next = np.roll(P, -1, axis=1) - P
-    to_prev = np.roll(P, 1, axis=1) - P
+    return _assemble_edge_weights(faces, 0.5 * _corner_cotangents(vertices[faces]), len(vertices))
+
+
+def _corner_cotangents(corners):
+    """cot of each corner's angle, (t, 3), from the triangles' corner positions (t, 3, 3)."""
+    to_next = np.roll(corners, -1, axis=1) - corners
+    to_prev = np.roll(corners, 1, axis=1) - corners
     # cot of the angle at corner k = dot / |cross|; it weighs the edge opposite that corner.
-    cot = (np.einsum("tjk,tjk->tj", to_next, to_prev)
-           / np.linalg.norm(np.cross(to_next, to_prev), axis=2))
-    return _assemble_edge_weights(faces, 0.5 * cot, len(vertices))
+    return (np.einsum("tjk,tjk->tj", to_next, to_prev)
+            / np.linalg.norm(np.cross(to_next, to_prev), axis=2))
 
 
 def _assemble_edge_weights(faces, corner_weight, n):
@@ -76,10 +79,9 @@ def _inverse_stereographic(z, from_pole=1.0):
 
 # --- Choi, Lam & Lui (2015) ---------------------------------------------------------------------------
 
-def _most_regular_face(vertices, faces):
+def _most_regular_face(corners):
     """The face whose edge lengths are closest to a third of its perimeter each (FLASH's big triangle)."""
-    P = vertices[faces]
-    lengths = np.linalg.norm(np.roll(P, -1, axis=1) - P, axis=2)
+    lengths = np.linalg.norm(np.roll(corners, -1, axis=1) - corners, axis=2)
     regularity = np.abs(lengths / lengths.sum(axis=1, keepdims=True) - 1 / 3).sum(axis=1)
     return int(np.argmin(regularity))
 
@@ -90,10 +92,16 @@ def beltrami_coefficient(plane, faces, vertices):
     Per face, the surface's first fundamental form E, F, G in the plane's coordinates gives
     mu = (E - G + 2iF) / (E + G + 2 sqrt(EG - F^2)); mu = 0 where the map is conformal.
     """
+    return _beltrami_of_corners(plane, faces, np.asarray(vertices, dtype=float)[faces])
+
+
+def _beltrami_of_corners(plane, faces, corners):
+    """:func:`beltrami_coefficient` with each face's own corner positions (t, 3, 3): the faces need
+    not share vertices, and the coefficient does not change with a face's size or placement."""
     Q = plane[faces]                                   # (t, 3, 2)
     e1, e2 = Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0]
     signed_area2 = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    X = vertices[faces]
+    X = corners
     d1, d2 = X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]
     # Gradient of a linear function on the face from its differences along e1, e2 (Cramer's rule).
     du = (d1 * e2[:, 1, None] - d2 * e1[:, 1, None]) / signed_area2[:, None]
@@ -137,7 +145,7 @@ def linear_beltrami_solver(plane, faces, mu, fixed, targets):
     return _dirichlet_solve(K, values, fixed)
 
 
-def conformal_map(vertices, faces, fixed_fraction=0.1):
+def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None):
     """Linear spherical conformal map of Choi, Lam & Lui (2015), "FLASH", SIAM J. Imaging Sci. 8(1).
 
     Two linear solves, as in the paper:
@@ -160,13 +168,23 @@ def conformal_map(vertices, faces, fixed_fraction=0.1):
     step is skipped (the reference implementation does the same). The map is not guaranteed to be
     bijective: cotangent weights can be negative on obtuse meshes.
 
+    With ``angles`` the map is conformal to the metric those corner angles describe instead of the
+    surface's: each triangle takes the planar shape of its angles
+    (:func:`sphere_nlp.geometry.triangles_with_angles`). Both steps use only each triangle's shape
+    (the cotangents and the Beltrami coefficient do not change with its size), so the triangles need
+    not agree on their shared edges. Given an angle mode's targets this is the linearised map the
+    solve is looking for: the equal modes' 2 pi / deg targets give a map far from the surface's.
+
     Parameters
     ----------
     vertices : (n, 3) float array
+        The surface; with ``angles``, only its number of vertices is used.
     faces : (t, 3) int array
         Closed genus-0 triangle mesh, outward (counter-clockwise) faces.
     fixed_fraction : float
         Fraction of vertices pinned near the south pole in step 2.
+    angles : (t, 3) float array, optional
+        Corner angles of the metric to map conformally (default: the surface's).
 
     Returns
     -------
@@ -184,10 +202,11 @@ def conformal_map(vertices, faces, fixed_fraction=0.1):
     vertices = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
     n = len(vertices)
+    corners = vertices[faces] if angles is None else triangles_with_angles(angles)
     # Step 1: harmonic map into the big triangle.
-    big = _most_regular_face(vertices, faces)
+    big = _most_regular_face(corners)
     p1, p2, p3 = faces[big]
-    a, b = vertices[p2] - vertices[p1], vertices[p3] - vertices[p1]
+    a, b = corners[big, 1] - corners[big, 0], corners[big, 2] - corners[big, 0]
     scale = 1 / np.linalg.norm(a)
     # p1 at 0, p2 at 1, p3 where the 3D shape puts it (counter-clockwise, so the rest comes out clockwise
     # in the plane and counter-clockwise on the sphere after the orientation-reversing projection).
@@ -195,7 +214,8 @@ def conformal_map(vertices, faces, fixed_fraction=0.1):
     boundary = np.zeros((n, 2))
     boundary[p2] = [1, 0]
     boundary[p3] = third
-    z = _dirichlet_solve(cotan_laplacian(vertices, faces), boundary, [p1, p2, p3])
+    stiffness = _assemble_edge_weights(faces, 0.5 * _corner_cotangents(corners), n)
+    z = _dirichlet_solve(stiffness, boundary, [p1, p2, p3])
     z -= z.mean(axis=0)
     # Scale the plane so the big triangle (around the north pole) and the triangle nearest the south
     # pole get about the same size on the sphere.
@@ -217,7 +237,7 @@ def conformal_map(vertices, faces, fixed_fraction=0.1):
     # Step 2: quasi-conformal correction around the north pole, in south-pole stereographic coordinates.
     by_height = np.argsort(S[:, 2])
     plane = S[:, :2] / (1 + S[:, 2:])
-    mu = beltrami_coefficient(plane, faces, vertices)
+    mu = _beltrami_of_corners(plane, faces, corners)
     count = max(round(n * fixed_fraction), 3)
     for attempt in range(2):
         fixed = by_height[:min(n, count)]

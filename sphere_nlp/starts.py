@@ -5,7 +5,8 @@ mesh, which satisfy every constraint; the paper's formulations from a linear lea
 
 * :func:`conformal_start`: the linear spherical conformal map (:func:`sphere_nlp.conformal.conformal_map`)
   Mobius-centred by vertex area, its flipped triangles repaired by :func:`sphere_nlp.untangle.untangle`
-  if it has any. Close to the optimum of every angle mode, but not always bijective.
+  if it has any. Conformal to the metric of the target angles (:func:`initial_point`), so close to
+  the optimum of every angle mode, but not always bijective.
 * :func:`embedding_start`: the convex embedding (:func:`sphere_nlp.embedding.convex_embedding`),
   valid by construction; the fallback.
 * :func:`starting_positions`: the two above under one name (``kind``), then the Mobius gauge
@@ -27,7 +28,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .certify import certify
-from .geometry import scatter_to_vertices, signed_solid_angles, spherical_angles, triangle_areas
+from .geometry import corner_angles, scatter_to_vertices, signed_solid_angles, spherical_angles, triangle_areas
 from .hierarchy import prolong_to_subdivision  # noqa: F401  (the hierarchy's start, re-exported)
 
 # The named starting points of :func:`initial_point` (an (n, 3) array of positions is the other kind).
@@ -64,8 +65,11 @@ def vertex_areas(vertices, faces, n_vertices):
     return scatter_to_vertices(faces, triangle_areas(vertices, faces), n_vertices)
 
 
-def conformal_start(connectivity, vertices, weights=None):
+def conformal_start(connectivity, vertices, weights=None, angles=None):
     """The conformal map, Mobius-centred by ``weights``, if it (or its untangled repair) certifies.
+
+    ``angles`` (t, 3): map conformally to the metric these corner angles describe instead of the
+    surface's (see :func:`sphere_nlp.conformal.conformal_map`).
 
     Returns
     -------
@@ -76,7 +80,7 @@ def conformal_start(connectivity, vertices, weights=None):
 
     faces = connectivity.faces
     with np.errstate(all="ignore"):
-        positions = mobius_centre(conformal_map(vertices, faces), weights)
+        positions = mobius_centre(conformal_map(vertices, faces, angles=angles), weights)
     if not np.isfinite(positions).all():
         return None
     if certify(positions, faces).valid:
@@ -111,7 +115,7 @@ def embedding_start(connectivity, vertices=None, weights=None):
     return positions, "embedding-uncentred"
 
 
-def starting_positions(connectivity, vertices=None, kind="auto", gauge="area"):
+def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", angles=None):
     """Valid spherical positions of the mesh to start the log-chord solve from.
 
     ``"conformal"``: :func:`conformal_start`. Close to the optimum of every angle mode (brain,
@@ -124,6 +128,9 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area"):
     squared excesses (:func:`sphere_nlp.embedding.excess_gauge`), the normalisation of the angle
     modes' optimum (kept only if it certifies); ``"area"`` (default) keeps the area centring.
 
+    ``angles`` (t, 3), optional: the conformal start maps conformally to the metric of these corner
+    angles rather than the surface's (:func:`conformal_start`).
+
     Returns
     -------
     positions : (n, 3) array of unit vectors, a certified spherical triangulation
@@ -135,7 +142,7 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area"):
     weights = None if vertices is None else vertex_areas(vertices, faces, connectivity.n_vertices)
     found = None
     if kind in ("auto", "conformal") and vertices is not None:
-        found = conformal_start(connectivity, vertices, weights)
+        found = conformal_start(connectivity, vertices, weights, angles)
     positions, kind = found or embedding_start(connectivity, vertices, weights)
     if gauge == "excess":
         from .embedding import excess_gauge
@@ -145,10 +152,10 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area"):
     return positions, kind
 
 
-def feasible_start(connectivity, vertices=None, kind="auto", gauge="area"):
+def feasible_start(connectivity, vertices=None, kind="auto", gauge="area", angles=None):
     """Angles and excesses of a valid spherical triangulation of the mesh, and its positions.
 
-    See :func:`starting_positions` for ``kind``.
+    See :func:`starting_positions` for ``kind`` and ``angles``.
 
     Returns
     -------
@@ -157,7 +164,7 @@ def feasible_start(connectivity, vertices=None, kind="auto", gauge="area"):
     positions : (n, 3) array
     kind : str
     """
-    positions, kind = starting_positions(connectivity, vertices, kind, gauge)
+    positions, kind = starting_positions(connectivity, vertices, kind, gauge, angles)
     return (*angles_and_excess(positions, connectivity.faces), positions, kind)
 
 
@@ -227,6 +234,12 @@ def initial_point(connectivity, targets, start, vertices=None, gauge="area"):
     gauge : {"area", "excess"}
         The Mobius gauge of a named valid start (see :func:`starting_positions`).
 
+    The conformal start maps conformally to the metric of ``targets.angles``: the surface's own
+    angles in the original modes, 2 pi / deg in the equal modes, whose optimum is far from the
+    surface's conformal map (equal-angles iterations from the surface's map -> from the targets'
+    metric: knight.off 88 -> 14, max_planck.obj 109 -> 10, koala.obj over 347 in 15 minutes -> 13;
+    docs/tuning.md, "The start's metric").
+
     Returns
     -------
     InitialPoint
@@ -238,5 +251,15 @@ def initial_point(connectivity, targets, start, vertices=None, gauge="area"):
         raise ValueError("start must be one of %s" % (START_POINTS,))
     if start == "linear":
         return InitialPoint(*linear_initial_guess(connectivity, targets), None, "linear")
-    angles, excess, positions, kind = feasible_start(connectivity, vertices, start, gauge)
+    angles, excess, positions, kind = feasible_start(connectivity, vertices, start, gauge,
+                                                     _metric_angles(connectivity, targets, vertices))
     return InitialPoint(angles, excess, positions, kind)
+
+
+def _metric_angles(connectivity, targets, vertices):
+    """The target angles, or None when they are the surface's own, whose conformal map is then
+    computed from the vertices (the same map, without the rounding of rebuilding the triangles)."""
+    if vertices is None:
+        return None
+    own = corner_angles(np.asarray(vertices, dtype=float), connectivity.faces)
+    return None if np.allclose(targets.angles, own, rtol=0, atol=1e-12) else targets.angles

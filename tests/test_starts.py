@@ -82,3 +82,41 @@ def test_a_degree_1000_cap_gets_a_valid_start_with_its_ring_on_the_equator():
     assert np.allclose(np.abs(X[1000:, 2]), 1.0) and np.abs(X[:1000, 2]).max() < 1e-12
     positions, kind = starts.starting_positions(c, V)
     assert certify(positions, F).valid and kind.startswith("embedding")
+
+
+def test_conformal_map_of_the_surfaces_own_angles_is_the_surfaces_map():
+    # Cotangents and Beltrami coefficients need only each triangle's shape, so rebuilding the
+    # triangles from their angles (each at its own size and place) gives the same map.
+    from sphere_nlp.conformal import conformal_map
+    from sphere_nlp.geometry import corner_angles
+    from meshgen import random_genus0_mesh
+
+    V, F = random_genus0_mesh(300, seed=3)
+    V = V * [1.0, 2.5, 0.6]
+    assert np.abs(conformal_map(V, F, angles=corner_angles(V, F)) - conformal_map(V, F)).max() < 1e-9
+
+
+def test_equal_angles_start_from_the_map_conformal_to_their_targets():
+    # A long ellipsoid: its surface's conformal map is far from equal angles, the map conformal to
+    # the 2 pi / deg targets' metric is close (4 iterations against 9 from the surface's map), and
+    # both reach the same optimum.
+    import sphere_nlp
+    from sphere_nlp.geometry import corner_angles, spherical_angles
+
+    V, F = ellipsoid(2, axes=(1.0, 4.0, 0.5))
+    c = build_connectivity(F, len(V))
+    targets = make_targets("equal-angles", V, F, c.vertex_degree)
+    point = starts.initial_point(c, targets, "auto", V)
+    surface, _ = starts.starting_positions(c, V)
+    assert certify(point.positions, F).valid
+    to_targets = np.abs(point.angles - targets.angles).mean()
+    assert to_targets < 0.5 * np.abs(spherical_angles(surface, F) - targets.angles).mean()
+    # the original modes' targets are the surface's angles: the surface's own map, as before
+    own = make_targets("original-angles", V, F, c.vertex_degree)
+    assert np.allclose(own.angles, corner_angles(V, F))
+    assert starts._metric_angles(c, own, V) is None and starts._metric_angles(c, targets, V) is targets.angles
+    from_metric = sphere_nlp.parameterize((V, F), "equal-angles")
+    from_surface = sphere_nlp.parameterize((V, F), "equal-angles", start=surface)
+    assert from_metric.certificate.valid and from_surface.certificate.valid
+    assert from_metric.iterations < from_surface.iterations
+    assert abs(from_metric.objective - from_surface.objective) <= 1e-8 * from_surface.objective
