@@ -203,6 +203,34 @@ def iterations_text(row):
     return row["iterations"]
 
 
+def previous_summary(row):
+    """What a replaced row said, kept beside its re-run: iterations, total seconds, objective, commit."""
+    certified = row.get("certificate", {}).get("valid")
+    return {"iterations": iterations_text(row), "total_s": row.get("timings_s", {}).get("total", row.get("wall_s")),
+            "objective": row.get("objective") if certified else None, "certified": bool(certified),
+            "commit": row.get("commit", "?")}
+
+
+def previous_text(row):
+    """The previous-row cell: 'iterations, total s, objective (commit)', or 'not certified' in place of
+    the objective."""
+    p = row.get("previous")
+    if not p:
+        return ""
+    objective = fmt(p["objective"], "%.6g") if p["certified"] else "not certified"
+    return "%s its, %s s, %s (%s)" % (p["iterations"], fmt(p["total_s"]), objective, p["commit"])
+
+
+def replace_row(rows, new):
+    """``rows`` with ``new`` in place of the row of the same case (mesh, mode, formulation), whose
+    summary ``new`` keeps as "previous"."""
+    key = (new["mesh"], new["mode"], new["formulation"])
+    old = [row for row in rows if (row["mesh"], row["mode"], row["formulation"]) == key]
+    if old:
+        new["previous"] = previous_summary(old[-1])
+    return [row for row in rows if (row["mesh"], row["mode"], row["formulation"]) != key] + [new]
+
+
 def status_text(row):
     """The status cell; a capped case also says where it was (stage, iteration, objective, violation);
     a solve stopped by its per-stage time limit and projected onto the constraints says so (and so
@@ -240,14 +268,14 @@ def write_tables(rows, path_md, note=""):
              [note, ""] if note else []) + [
              "| mesh | vertices | mode | formulation | status | certified | iterations | solve s | total s "
              "| peak RSS MB | objective | mean angle dist ° | mean abs log area | QC max | QC max vs target "
-             "| min area / mean | max angle err | commit |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| min area / mean | max angle err | commit | previous row |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         t = r.get("timings_s", {})
         cert = r.get("certificate", {})
         # The independent check of the written map (sphere_nlp.metrics.usability_summary).
         use = r.get("usability") or {}
-        lines.append("| %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s |" % (
+        lines.append("| %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s | %s |" % (
             mesh_label(r["mesh"]),
             r.get("vertices", ""), r["mode"], r["formulation"], status_text(r),
             "yes" if cert.get("valid") else "no", iterations_text(r),
@@ -256,7 +284,7 @@ def write_tables(rows, path_md, note=""):
             fmt(use.get("mean_abs_log_area"), "%.3f"), fmt(use.get("qc_max"), "%.3g"),
             fmt(use.get("qc_max_target"), "%.3g"),
             fmt(use.get("min_area_ratio"), "%.1e"), fmt(r.get("max_angle_error"), "%.1e"),
-            r.get("commit", "?")))
+            r.get("commit", "?"), previous_text(r)))
     ok = [r for r in rows if r.get("certificate", {}).get("valid") and r["formulation"] == "log-chord"
           and r["mode"] == "original-angles"]
     if len(ok) >= 3:
@@ -339,9 +367,9 @@ def main():
     for mesh, mode, form, start in jobs:
         r = run_case(mesh, mode, form, args.cap, start, max_time=args.max_time, on_limit=args.on_limit)
         r["commit"] = commit
-        # A re-run replaces the earlier row of the same case (so --append can refresh a few cases).
-        rows = [row for row in rows if (row["mesh"], row["mode"], row["formulation"]) != (mesh, mode, form)]
-        rows.append(r)
+        # A re-run replaces the earlier row of the same case (so --append can refresh a few cases),
+        # keeping what it said beside it.
+        rows = replace_row(rows, r)
         print("%-40s %-16s %-10s %-28s %s s" % (mesh_label(mesh), mode, form, r.get("status"),
                                                  fmt(r.get("timings_s", {}).get("total", r.get("wall_s")))),
               flush=True)

@@ -76,3 +76,21 @@ def test_projected_rows_say_they_are_not_optimal():
     row = {"status": "Solve_Succeeded", "success": True, "converged": True, "max_time_s": 1200.0,
            "coarse": {"converged": False}}
     assert "coarse stopped" in bench.status_text(row)
+
+
+def test_a_rerun_replaces_its_row_and_keeps_what_it_said_beside_it(tmp_path):
+    def row(mesh, iterations, total, objective, commit, valid=True):
+        return {"mesh": mesh, "mode": "equal-angles", "formulation": "log-chord", "iterations": iterations,
+                "timings_s": {"total": total}, "objective": objective, "certificate": {"valid": valid},
+                "commit": commit}
+
+    rows = [row("a.off", 88, 1.7, 330.709, "old1"), row("b.off", 12, 0.5, 1.0, "old2")]
+    rows = bench.replace_row(rows, row("a.off", 12, 0.5, 330.709, "new"))
+    assert [r["mesh"] for r in rows] == ["b.off", "a.off"] and "previous" not in rows[0]
+    assert bench.previous_text(rows[1]) == "88 its, 1.7 s, 330.709 (old1)"
+    rows[1]["certificate"]["valid"] = False                              # an uncertified row says so
+    rows = bench.replace_row(rows, row("a.off", 11, 0.4, 330.709, "newer"))
+    assert bench.previous_text(rows[-1]) == "12 its, 0.5 s, not certified (new)"
+    bench.write_tables(rows, str(tmp_path / "t.md"))
+    table = (tmp_path / "t.md").read_text()
+    assert "| previous row |" in table and "12 its, 0.5 s, not certified (new) |" in table
