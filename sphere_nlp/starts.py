@@ -237,7 +237,7 @@ def initial_point(connectivity, targets, start, vertices=None, gauge="area"):
     The conformal start maps conformally to the metric of ``targets.angles``: the surface's own
     angles in the original modes, 2 pi / deg in the equal modes, whose optimum is far from the
     surface's conformal map (equal-angles iterations from the surface's map -> from the targets'
-    metric: knight.off 88 -> 14, max_planck.obj 109 -> 10, koala.obj over 347 in 15 minutes -> 13;
+    metric: knight.off 88 -> 12, max_planck.obj 109 -> 14, koala.obj over 347 in 15 minutes -> 7;
     docs/tuning.md, "The start's metric").
 
     Returns
