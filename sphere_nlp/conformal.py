@@ -208,8 +208,8 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None):
     p1, p2, p3 = faces[big]
     a, b = corners[big, 1] - corners[big, 0], corners[big, 2] - corners[big, 0]
     scale = 1 / np.linalg.norm(a)
-    # p1 at 0, p2 at 1, p3 where the 3D shape puts it (counter-clockwise, so the rest comes out clockwise
-    # in the plane and counter-clockwise on the sphere after the orientation-reversing projection).
+    # p1 at 0, p2 at 1, p3 where the triangle's shape puts it (counter-clockwise, so the rest comes out
+    # clockwise in the plane and counter-clockwise on the sphere after the orientation-reversing projection).
     third = scale * np.array([a @ b / np.linalg.norm(a), np.linalg.norm(np.cross(a, b)) / np.linalg.norm(a)])
     boundary = np.zeros((n, 2))
     boundary[p2] = [1, 0]

@@ -104,8 +104,9 @@ def quasi_conformal_ratio(mesh_vertices, sphere_vertices, faces):
 
 
 def target_shape_ratio(sphere_vertices, faces, target_angles):
-    """:func:`quasi_conformal_ratio` of each triangle's affine map from its target shape (the planar
-    triangle with the target angles, :func:`sphere_nlp.geometry.triangles_with_angles`) to its chord triangle, (t,).
+    """:func:`quasi_conformal_ratio` of each triangle's affine map from its target shape to its chord
+    triangle, (t,); the target shape is the planar triangle with the target angles
+    (:func:`sphere_nlp.geometry.triangles_with_angles`).
 
     In the angle modes this measures how far the map is from the triangles it was asked for; for
     the original angles it equals :func:`quasi_conformal_ratio`, while for equal angles it does not

@@ -28,7 +28,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .certify import certify
-from .geometry import corner_angles, scatter_to_vertices, signed_solid_angles, spherical_angles, triangle_areas
+from .geometry import (corner_angles, scatter_to_vertices, signed_solid_angles, spherical_angles,
+                       triangle_areas)
 from .hierarchy import prolong_to_subdivision  # noqa: F401  (the hierarchy's start, re-exported)
 
 # The named starting points of :func:`initial_point` (an (n, 3) array of positions is the other kind).
