@@ -29,16 +29,18 @@ def cotan_laplacian(vertices, faces):
     """
     vertices = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
-    return _assemble_edge_weights(faces, 0.5 * _corner_cotangents(vertices[faces]), len(vertices))
+    return _cotan_laplacian_of_corners(faces, vertices[faces], len(vertices))
 
 
-def _corner_cotangents(corners):
-    """cot of each corner's angle, (t, 3), from the triangles' corner positions (t, 3, 3)."""
+def _cotan_laplacian_of_corners(faces, corners, n):
+    """:func:`cotan_laplacian` from each face's own corner positions (t, 3, 3), which need not be
+    shared between faces (the cotangents depend on each triangle's shape only)."""
     to_next = np.roll(corners, -1, axis=1) - corners
     to_prev = np.roll(corners, 1, axis=1) - corners
     # cot of the angle at corner k = dot / |cross|; it weighs the edge opposite that corner.
-    return (np.einsum("tjk,tjk->tj", to_next, to_prev)
-            / np.linalg.norm(np.cross(to_next, to_prev), axis=2))
+    cot = (np.einsum("tjk,tjk->tj", to_next, to_prev)
+           / np.linalg.norm(np.cross(to_next, to_prev), axis=2))
+    return _assemble_edge_weights(faces, 0.5 * cot, n)
 
 
 def _assemble_edge_weights(faces, corner_weight, n):
@@ -214,8 +216,7 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None):
     boundary = np.zeros((n, 2))
     boundary[p2] = [1, 0]
     boundary[p3] = third
-    stiffness = _assemble_edge_weights(faces, 0.5 * _corner_cotangents(corners), n)
-    z = _dirichlet_solve(stiffness, boundary, [p1, p2, p3])
+    z = _dirichlet_solve(_cotan_laplacian_of_corners(faces, corners, n), boundary, [p1, p2, p3])
     z -= z.mean(axis=0)
     # Scale the plane so the big triangle (around the north pole) and the triangle nearest the south
     # pole get about the same size on the sphere.

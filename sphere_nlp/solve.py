@@ -402,10 +402,9 @@ def _solve_with_corner_floor(context, on_limit):
     "needed": the solve runs first with every corner bounded by the margin alone; only if its
     result has a corner below its floor (``corner_floor`` x beta) is the mesh solved again from
     the start with the floors as bounds, in stages named "corner-floor-<stage>". The floors rarely
-    bind at the optimum, but as bounds from the start they can obstruct the path to it (the
-    Loop-subdivided armadillo, equal-angles: converged in 60 iterations this way, not in 25
-    minutes with them), while on other meshes they keep the path from collapsing corners
-    (nefertiti.obj, equal-angles: 85 iterations with them, over 200 without); docs/tuning.md.
+    bind at the optimum, but as bounds from the start they can obstruct the path to it, while on
+    other meshes they keep the path from collapsing corners (both measured in equal-angles from the
+    surface's conformal map, which that mode no longer starts from; docs/tuning.md).
     """
     floors, margin = context.log_u_floor, np.log(context.settings.angle_margin)
     if context.settings.corner_floor_pass == "start" or not np.any(floors > margin):
