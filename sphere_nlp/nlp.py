@@ -83,6 +83,18 @@ def status_kind(status):
 
 
 @dataclass
+class Iterate:
+    """One IPOPT iterate, kept by a run that watches for divergence (``IpoptRun.best_sound``)."""
+
+    x: np.ndarray
+    lam_g: np.ndarray
+    lam_x: np.ndarray
+    iteration: int
+    objective: float
+    violation: float
+
+
+@dataclass
 class IpoptRun:
     """The outcome of one IPOPT run (:meth:`AngleNLP.solve`).
 
@@ -106,6 +118,9 @@ class IpoptRun:
     touched : bool
         Whether the run ended on its window on the log excesses (set by the caller that bounds them,
         :func:`sphere_nlp.solve.windowed_solve`).
+    best_sound : Iterate or None
+        A run that watched for divergence (``abort_violation``): its iterate of least objective among
+        those within ``sound_violation`` of the constraints, where a diverged run can resume.
     """
 
     x0: np.ndarray
@@ -119,6 +134,7 @@ class IpoptRun:
     build_s: float = 0.0
     stats: dict = None
     touched: bool = False
+    best_sound: Iterate = None
 
     @property
     def success(self):
@@ -221,7 +237,8 @@ class _ProgressCallback(ca.Callback):
 
     A run counts as diverged when its max constraint violation has stayed above
     ``self.abort_violation`` for ``self.abort_iterations`` iterations in a row (see
-    :meth:`AngleNLP.solve`); IPOPT then ends with User_Requested_Stop at that iterate.
+    :meth:`AngleNLP.solve`); IPOPT then ends with User_Requested_Stop at that iterate. Such a run
+    also keeps its best iterate within ``self.sound_violation`` of the constraints (``self.best``).
     """
 
     def __init__(self, n_x, n_g, lbg, ubg):
@@ -231,15 +248,18 @@ class _ProgressCallback(ca.Callback):
         self.reset(None, None, 0)
         self.construct("sphere_nlp_progress", {})
 
-    def reset(self, report, abort_violation, abort_iterations, on_iterate=None):
-        """Start a run: report to ``report`` (or nobody), watch for divergence if abort_violation,
-        hand every iterate to ``on_iterate`` (if given)."""
+    def reset(self, report, abort_violation, abort_iterations, on_iterate=None, sound_violation=0.0):
+        """Start a run: report to ``report`` (or nobody), watch for divergence if abort_violation
+        (keeping the best iterate within ``sound_violation``), hand every iterate to ``on_iterate``
+        (if given)."""
         self._report, self._on_iterate = report, on_iterate
         self.iteration = 0
         self.start = time.perf_counter()
         self.abort_violation, self.abort_iterations = abort_violation, abort_iterations
+        self.sound_violation = sound_violation
         self.iterations_above = 0
         self.aborted = False
+        self.best = None
 
     def get_n_in(self):
         return ca.nlpsol_n_out()
@@ -264,15 +284,19 @@ class _ProgressCallback(ca.Callback):
         return ca.Sparsity(0, 0)
 
     def eval(self, arg):
-        g = np.asarray(arg[ca.nlpsol_out().index("g")]).ravel()
+        names = ca.nlpsol_out()
+        g = np.asarray(arg[names.index("g")]).ravel()
         violation = float(np.max(np.maximum(self._lbg - g, g - self._ubg), initial=0.0))
+        objective = float(arg[names.index("f")])
         if self._report is not None:
-            self._report(self.iteration, float(arg[ca.nlpsol_out().index("f")]), violation,
-                         time.perf_counter() - self.start)
+            self._report(self.iteration, objective, violation, time.perf_counter() - self.start)
         if self._on_iterate is not None:
-            names = ca.nlpsol_out()
             self._on_iterate(self.iteration, *[np.asarray(arg[names.index(k)]).ravel() for k in ("x", "lam_g", "lam_x")],
-                             float(arg[names.index("f")]))
+                             objective)
+        if (self.abort_violation is not None and violation <= self.sound_violation
+                and (self.best is None or objective < self.best.objective)):
+            self.best = Iterate(*[np.array(arg[names.index(k)]).ravel() for k in ("x", "lam_g", "lam_x")],
+                                iteration=self.iteration, objective=objective, violation=violation)
         self.iteration += 1
         # not (violation <= ...) so that a NaN violation counts as above
         above = self.abort_violation is not None and not violation <= self.abort_violation
@@ -641,7 +665,7 @@ class _AngleProblem:
 
     def solve(self, x0, inequalities=False, lam_g0=None, lam_x0=None, options=None, progress=None,
               excess_bounds=None, log_u_lower=None, abort_violation=None, abort_iterations=50,
-              on_iterate=None, modify_hessian=None):
+              sound_violation=0.0, on_iterate=None, modify_hessian=None):
         """Run IPOPT from x0.
 
         Parameters
@@ -665,6 +689,9 @@ class _AngleProblem:
             this for ``abort_iterations`` iterations in a row: a run that has left the solution set
             that far rarely comes back and would otherwise spend its whole time limit.
         abort_iterations : int
+        sound_violation : float
+            With ``abort_violation``: the run keeps its iterate of least objective among those whose
+            max violation is at most this (``IpoptRun.best_sound``), for a diverged run to resume from.
         on_iterate : callable(iteration, x, lam_g, lam_x, objective), optional
             Called with every iterate (copies), for traces and checkpoints.
         modify_hessian : callable(evaluator, x, lam_f, lam_g, values) -> values, optional
@@ -680,7 +707,7 @@ class _AngleProblem:
         start = time.perf_counter()
         solver, callback = self._solver(inequalities, options or {})
         build_s = time.perf_counter() - start
-        callback.reset(progress, abort_violation, abort_iterations, on_iterate)
+        callback.reset(progress, abort_violation, abort_iterations, on_iterate, sound_violation)
         if modify_hessian is not None and self._numeric is None:
             raise ValueError("modify_hessian needs the log-chord form with numpy evaluation")
         lbx, ubx, lbg, ubg = self._bounds(inequalities, excess_bounds, log_u_lower)
@@ -716,7 +743,7 @@ class _AngleProblem:
         return IpoptRun(x0=np.array(x0, dtype=float).ravel(), x=np.asarray(out["x"]).ravel(),
                         lam_g=np.asarray(out["lam_g"]).ravel(), lam_x=np.asarray(out["lam_x"]).ravel(),
                         objective=float(out["f"]), status=status, iterations=int(stats.get("iter_count", 0)),
-                        time_s=time.perf_counter() - start, build_s=build_s, stats=stats)
+                        time_s=time.perf_counter() - start, build_s=build_s, stats=stats, best_sound=callback.best)
 
 
 class PaperNLP(_AngleProblem):

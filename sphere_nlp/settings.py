@@ -141,6 +141,10 @@ class SolverSettings:
     abort_violation, abort_iterations : float, int
         A log-chord run is stopped as "Diverged" once its violation has stayed above
         ``abort_violation`` for ``abort_iterations`` iterations in a row.
+    sound_violation, diverged_resumes : float, int
+        A diverged margin stage resumes (at most ``diverged_resumes`` times) from its iterate of
+        least objective among those whose max violation was at most ``sound_violation``
+        (:func:`sphere_nlp.solve.resume_diverged`).
     area_continuation_step : float
         Area modes: each continuation step moves every log excess by at most this.
     area_continuation_iterations : int
@@ -220,6 +224,8 @@ class SolverSettings:
     diverged_violation: float = 0.1
     abort_violation: float = 1.0
     abort_iterations: int = 50
+    sound_violation: float = 1e-2
+    diverged_resumes: int = 2
     area_continuation_step: float = 6.0
     area_continuation_iterations: int = 30
     area_continuation_violation: float = 0.2

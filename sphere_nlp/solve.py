@@ -21,8 +21,10 @@ formulation, and the three redundant vertex constraints are left out (see
    little (in log u they are simple bounds, mostly far from active) and the optimum is often at a
    degenerate triangle, which an equality stage chases towards log u = -inf (see
    docs/tuning.md, "angle_mode_excess_window", for the iterations this saves).
-3. Only if that run diverged (left the solution set): "equality", the same without the margin, then
-   "margin" again from its result, or from the start if that diverged too.
+3. Only if that run diverged (left the solution set): "margin-resumed", the margin stage again from
+   the diverged run's best iterate near the constraints (:func:`resume_diverged`), warm-started;
+   if that diverges too, or there was no such iterate, "equality", the same without the margin,
+   then "margin" again from its result, or from the start if that diverged too.
 4. "penalty-1e+04", "penalty-1e+06", only if the left-out vertex sums did not come back: again
    from there with their penalty 100 and then 10,000 times stiffer.
 5. "all-constraints", only if they still did not: from the start with all of (7).
@@ -48,7 +50,7 @@ from fractions import Fraction
 import numpy as np
 
 from . import interrupts
-from .nlp import DEFAULT_FORMULATION, AngleNLP, LogChordNLP, status_kind
+from .nlp import DEFAULT_FORMULATION, AngleNLP, IpoptRun, LogChordNLP, status_kind
 from .errors import UsageError
 from .heap import arrays_on_heap
 from .settings import DEFAULT_SETTINGS, SolverSettings
@@ -449,6 +451,7 @@ def _solve_log_chord(context, on_limit):
         obtuse = context.obtuse_at(nlp, x_start)
         nlp = context.nlp(obtuse)
     run, log_u_lower = margin_stage(context, nlp, x_start)
+    run = resume_diverged(context, nlp, run, log_u_lower)
     if on_limit == "project" and run.stopped_by_limit and run.finite:
         # Stopped by the caller's limits: hand back its iterate made feasible, if that works.
         projected = _projected_solution(context, nlp, run, log_u_lower)
@@ -519,7 +522,7 @@ def windowed_solve(context, nlp, x_start, name, inequalities=False, recentre=Tru
                         inequalities=inequalities, options=run_options, progress=context.stage_progress(name),
                         excess_bounds=(lower, log_e + window), log_u_lower=log_u_lower,
                         abort_violation=settings.abort_violation, abort_iterations=settings.abort_iterations,
-                        **warm)
+                        sound_violation=settings.sound_violation, **warm)
         moved = np.max(np.abs(run.x[3 * t:] - log_e), initial=0.0)
         run.touched = bool(moved >= 0.99 * window)
         if not run.success or not run.finite or not run.touched or not recentre:
@@ -553,6 +556,28 @@ def margin_stage(context, nlp, x_start):
     run = windowed_solve(context, nlp, restart, "margin", inequalities=True, log_u_lower=log_u_lower,
                          first_options=context.first_options, log_e_lower=context.log_e_lower)
     return run, log_u_lower
+
+
+def resume_diverged(context, nlp, run, log_u_lower):
+    """After a margin stage that left the solution set: the margin stage again, warm-started from
+    the best iterate it had near the constraints (``run.best_sound``), at most
+    ``settings.diverged_resumes`` times.
+
+    A long stage can make most of its way to an optimum and then run off in a few steps (the
+    filter then accepts a growing violation); its progress up to there is worth keeping, where the
+    equality fallback would start again from the stage's start. Returns ``run`` itself if it did not
+    diverge, had no such iterate beyond its start, or the run's time is up.
+    """
+    for _ in range(context.settings.diverged_resumes):
+        best = run.best_sound
+        if (not context.diverged(nlp, run) or best is None or best.iteration == 0
+                or interrupts.deadline_passed()):
+            return run
+        from_best = IpoptRun(x0=best.x, x=best.x, lam_g=best.lam_g, lam_x=best.lam_x,
+                             objective=best.objective, status="Resumed", iterations=0)
+        run = windowed_solve(context, nlp, best.x, "margin-resumed", inequalities=True,
+                             log_u_lower=log_u_lower, warm_from=from_best, log_e_lower=context.log_e_lower)
+    return run
 
 
 def equality_fallback(context, nlp, x_start, x0):

@@ -265,7 +265,7 @@ def _metric_angles(connectivity, targets, vertices):
     # equal-areas from the targets' metric: fewer iterations on 9 of 11 benchmark rows (armadillo.obj
     # 1,224 -> 607), but nefertiti.obj's margin stage left the solution set (violation 22 at
     # iteration 719), where the surface's map converges (docs/tuning.md, "The start's metric").
-    if vertices is None or targets.area_weight > 0:
+    if vertices is None:
         return None
     own = corner_angles(np.asarray(vertices, dtype=float), connectivity.faces)
     return None if np.allclose(targets.angles, own, rtol=0, atol=1e-12) else targets.angles

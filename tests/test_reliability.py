@@ -297,8 +297,9 @@ def test_max_time_bounds_the_whole_run_not_each_stage():
     assert result.status == "Maximum_WallTime_Exceeded" and not result.success
     ran = [s for s in result.stages if s["iterations"] > 0]
     assert sum(s["time_s"] for s in ran) < limit + 1.0
-    # The stated tolerance: one more IPOPT iteration, and the unfolding and certificate after it.
-    slowest_iteration = max(s["time_s"] / s["iterations"] for s in ran)
+    # The stated tolerance: one more IPOPT iteration, and the unfolding and certificate after it
+    # (on a loaded machine the set-up alone can outlast the limit, and no stage iterates).
+    slowest_iteration = max((s["time_s"] / s["iterations"] for s in ran), default=0.0)
     assert elapsed < limit + 2 * slowest_iteration + result.timings["unfold"] + result.timings["certify"] + 0.5
 
 

@@ -242,9 +242,10 @@ def test_margin_restart_never_lifts_a_corner_far():
     assert from_equality and np.array_equal(restart, far) and lower[1] == pytest.approx(far[1] - 0.1)
 
 
-def _diverging_runs(count):
+def _diverging_runs(count, keep_best=False):
     """An ``on_run`` hook that makes the first ``count`` "margin" or "equality" runs end at NaN
-    (a diverged run, whatever IPOPT did), and the real verdicts on those runs."""
+    (a diverged run, whatever IPOPT did), and the real verdicts on those runs. Unless ``keep_best``,
+    the runs had no iterate near the constraints to resume from (``best_sound``)."""
     from sphere_nlp import solve
 
     verdicts, starts = [], []
@@ -254,7 +255,8 @@ def _diverging_runs(count):
             starts.append(run.x0)
         if stage in ("margin", "equality") and len(verdicts) < count:
             verdicts.append(solve.diverged(nlp.connectivity, nlp, run.x))
-            return dataclasses.replace(run, x=np.full_like(run.x, np.nan))
+            return dataclasses.replace(run, x=np.full_like(run.x, np.nan), status="Diverged",
+                                       best_sound=run.best_sound if keep_best else None)
         return None
 
     return SolverSettings(on_run=on_run), verdicts, starts
@@ -272,6 +274,40 @@ def test_falls_back_to_the_equality_stage_when_the_direct_margin_stage_diverges(
     assert names[0] == "margin" and "equality" in names[1:]
     assert verdicts[0] is False                   # the real check passed that run: no false alarm
     assert r.certificate.valid and r.max_constraint_violation <= 1e-8
+
+
+@pytest.mark.parametrize("mode", ["original-areas", "equal-areas", "original-angles"])
+def test_a_diverged_margin_stage_resumes_from_its_best_iterate_near_the_constraints(mode):
+    # A margin stage that runs off after most of its way keeps its best sound iterate; the stage
+    # resumes from there (warm-started) instead of starting the equality fallback from scratch, and
+    # reaches the optimum of the undisturbed solve in a few iterations.
+    V, F = ellipsoid(2, axes=(1.0, 2.0, 0.7))
+    reference = sphere_nlp.parameterize((V, F), target=mode)
+    settings, verdicts, _ = _diverging_runs(1, keep_best=True)
+    r = sphere_nlp.parameterize((V, F), target=mode, settings=settings)
+    names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
+    assert names[:2] == ["margin", "margin-resumed"] and "equality" not in names
+    resumed = [s for s in r.stages if s["name"] == "margin-resumed"]
+    assert resumed[0]["iterations"] <= 10
+    assert r.objective == pytest.approx(reference.objective, rel=1e-8)
+    assert r.certificate.valid and r.max_constraint_violation <= 1e-8
+
+
+def test_a_run_keeps_its_least_objective_iterate_within_the_sound_violation():
+    # best_sound is an actual iterate of the run (the constraints at most sound_violation off),
+    # with its multipliers, and none is kept by a run that does not watch for divergence.
+    c, nlp, x = small_log_chord_problem()
+    x = x + 0.05 * np.sin(np.arange(len(x)))          # off the constraints, so that it has a way to go
+    iterates, reports = [], []
+    run = nlp.solve(x, inequalities=True, abort_violation=1.0, sound_violation=1e-3,
+                    progress=lambda i, f, violation, elapsed: reports.append((f, violation)),
+                    on_iterate=lambda i, xi, lam_g, lam_x, f: iterates.append(xi))
+    best = run.best_sound
+    assert best is not None and best.iteration > 0 and np.array_equal(best.x, iterates[best.iteration])
+    assert best.violation <= 1e-3 and best.lam_g.shape == run.lam_g.shape
+    assert best.objective == min(f for f, violation in reports if violation <= 1e-3)
+    assert reports[0][1] > 1e-3                        # the start is not among them
+    assert nlp.solve(x, inequalities=True).best_sound is None
 
 
 def test_after_two_diverged_runs_the_margin_stage_starts_from_the_feasible_start():
