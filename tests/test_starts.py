@@ -115,8 +115,10 @@ def test_equal_angles_start_from_the_map_conformal_to_their_targets():
     own = make_targets("original-angles", V, F, c.vertex_degree)
     assert np.allclose(own.angles, corner_angles(V, F))
     assert starts._metric_angles(c, own, V) is None and starts._metric_angles(c, targets, V) is targets.angles
-    # the area modes walk from the surface's map
-    assert starts._metric_angles(c, make_targets("equal-areas", V, F, c.vertex_degree), V) is None
+    # equal-areas has the same angle targets, so the same metric; original-areas the surface's
+    equal_areas = make_targets("equal-areas", V, F, c.vertex_degree)
+    assert starts._metric_angles(c, equal_areas, V) is equal_areas.angles
+    assert starts._metric_angles(c, make_targets("original-areas", V, F, c.vertex_degree), V) is None
     from_metric = sphere_nlp.parameterize((V, F), "equal-angles")
     from_surface = sphere_nlp.parameterize((V, F), "equal-angles", start=surface)
     assert from_metric.certificate.valid and from_surface.certificate.valid
