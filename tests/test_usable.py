@@ -266,3 +266,28 @@ def test_equal_angles_keep_every_corner_and_triangle_above_their_floors(name):
     assert check["min_area_ratio"] >= DEFAULT_SETTINGS.area_floor * (1 - 1e-6)
     assert check["corners_below_fraction"] == 0
     assert check["qc_max_target"] <= 50
+
+
+AREA_MODE_SHARED = ["knight.off", "spot.obj", "penguin.obj", "bunny.off", "max_planck.obj", "cheburashka.off",
+                    "hand_closed.obj", "brain_lh_pial_fsaverage5.off"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["original-areas", "equal-areas"])
+@pytest.mark.parametrize("name", AREA_MODE_SHARED)
+def test_area_modes_keep_every_triangle_placeable_and_original_areas_preserve_them(name, mode):
+    # The area modes on the shared meshes up to 10k vertices (larger ones take minutes each, see
+    # benchmarks/results.md): certified, no triangle below 1e-10 of the mean area, and in
+    # original-areas a mean |log area ratio| of at most 0.05. penguin's flippers are made of small
+    # triangles, whose area errors (9) counts in units of the mean triangle: 0.051 there. Corners
+    # below 0.1 x target are not asserted: a corner floor of 0.1 beta in these modes raised
+    # knight's original-areas objective from 21.05 to 41.5 and more and its area error with it
+    # (docs/tuning.md, "corner_weighting" and "area_continuation_weighting").
+    from conftest import shared_mesh
+
+    result = parameterize(shared_mesh(name), mode)
+    assert result.success and result.max_constraint_violation <= 1e-8
+    check = result.usability()
+    assert check["valid"] and check["min_area_ratio"] >= 1e-10
+    if mode == "original-areas":
+        assert check["mean_abs_log_area"] <= (0.06 if name == "penguin.obj" else 0.05)
