@@ -268,8 +268,8 @@ def test_equal_angles_keep_every_corner_and_triangle_above_their_floors(name):
     assert check["qc_max_target"] <= 50
 
 
-AREA_MODE_SHARED = ["knight.off", "spot.obj", "penguin.obj", "bunny.off", "max_planck.obj", "cheburashka.off",
-                    "hand_closed.obj", "brain_lh_pial_fsaverage5.off"]
+AREA_MODE_SHARED = ["knight.off", "spot.obj", "penguin.obj", "bunny.off", "max_planck.obj", "elephant.obj",
+                    "cheburashka.off", "hand_closed.obj", "brain_lh_pial_fsaverage5.off"]
 
 
 @pytest.mark.slow
