@@ -50,7 +50,7 @@ from fractions import Fraction
 import numpy as np
 
 from . import interrupts
-from .nlp import DEFAULT_FORMULATION, AngleNLP, IpoptRun, LogChordNLP, status_kind
+from .nlp import DEFAULT_FORMULATION, AngleNLP, LogChordNLP, status_kind
 from .errors import UsageError
 from .heap import arrays_on_heap
 from .settings import DEFAULT_SETTINGS, SolverSettings
@@ -500,8 +500,9 @@ def windowed_solve(context, nlp, x_start, name, inequalities=False, recentre=Tru
         Lower bounds on log u per corner (default: the margin everywhere).
     log_e_lower : (t,) array, optional
         Lower bounds on log e per triangle, kept inside every window (default: the window's own).
-    warm_from : IpoptRun, optional
-        An earlier run with the same equality constraints whose multipliers start this one.
+    warm_from : IpoptRun or Iterate, optional
+        An earlier run (or one of its iterates) with the same equality constraints whose
+        multipliers (``lam_g``, ``lam_x``) start this one.
     first_options : dict, optional
         IPOPT options of a run that is not warm-started (default ``context.options``).
 
@@ -576,10 +577,8 @@ def resume_diverged(context, nlp, run, log_u_lower):
         if (not context.diverged(nlp, run) or best is None or best.iteration == 0
                 or interrupts.deadline_passed()):
             return run
-        from_best = IpoptRun(x0=best.x, x=best.x, lam_g=best.lam_g, lam_x=best.lam_x,
-                             objective=best.objective, status="Resumed", iterations=0)
         run = windowed_solve(context, nlp, best.x, "margin-resumed", inequalities=True,
-                             log_u_lower=log_u_lower, warm_from=from_best, log_e_lower=context.log_e_lower)
+                             log_u_lower=log_u_lower, warm_from=best, log_e_lower=context.log_e_lower)
     return run
 
 
