@@ -129,8 +129,10 @@ def test_batch_exit_status_1_when_a_mesh_fails_and_2_for_bad_usage(tmp_path, cap
 def test_batch_interrupted_leaves_no_partial_file(tmp_path):
     inputs = tmp_path / "in"
     inputs.mkdir()
+    # Two quick meshes, then six that take seconds each: the signal, sent once the first report is in,
+    # arrives while the batch is still busy however loaded the machine is.
     for i in range(8):
-        write_mesh(inputs / ("e%d.off" % i), *meshgen.ellipsoid(4, axes=(1.0, 1.2 + 0.1 * i, 0.7)))
+        write_mesh(inputs / ("e%d.off" % i), *meshgen.ellipsoid(3 if i < 2 else 5, axes=(1.0, 1.2 + 0.1 * i, 0.7)))
     out = tmp_path / "out"
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     process = subprocess.Popen([sys.executable, "-m", "sphere_nlp", "batch", str(inputs), "--out", str(out),

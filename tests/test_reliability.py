@@ -121,6 +121,8 @@ def test_a_signal_inside_ipopt_stops_the_solve_and_is_raised_again(monkeypatch):
     """IPOPT catches what its callbacks raise; the recorded signal must still end parameterize."""
     V, F = meshgen.ellipsoid(3)
     calls = []
+    # parameterize takes over SIGINT only from Python's default handler (see interrupts.handled_signals)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
     def progress(stage, iteration, *_):
         calls.append((stage, iteration))
@@ -296,11 +298,13 @@ def test_max_time_bounds_the_whole_run_not_each_stage():
     elapsed = time.perf_counter() - start
     assert result.status == "Maximum_WallTime_Exceeded" and not result.success
     ran = [s for s in result.stages if s["iterations"] > 0]
-    assert sum(s["time_s"] for s in ran) < limit + 1.0
-    # The stated tolerance: one more IPOPT iteration, and the unfolding and certificate after it
-    # (on a loaded machine the set-up alone can outlast the limit, and no stage iterates).
+    # The stated tolerance: one more IPOPT iteration past the limit, then the unfolding and certificate.
+    # Time outside IPOPT (building each stage's NLP) is measured, not bounded: on a loaded machine it
+    # alone can outlast the limit, and then no stage iterates at all.
     slowest_iteration = max((s["time_s"] / s["iterations"] for s in ran), default=0.0)
-    assert elapsed < limit + 2 * slowest_iteration + result.timings["unfold"] + result.timings["certify"] + 0.5
+    in_ipopt = sum(s["time_s"] for s in result.stages)
+    assert in_ipopt < limit + 2 * slowest_iteration + 0.5
+    assert elapsed - result.timings["solve"] < result.timings["unfold"] + result.timings["certify"] + 0.5
 
 
 def test_a_vertex_of_degree_1000_keeps_the_kkt_system_sparse_and_maps():
