@@ -111,6 +111,11 @@ class SolverSettings:
     corner_floor : float
         Angle modes: every corner keeps u = alpha - e/2 >= this fraction of its target angle beta
         (and >= ``angle_margin``), a plain bound in the log formulation; 0 leaves the margin alone.
+    small_corner_floor, small_corner_angle : float
+        Where a corner floor is set (``corner_floor`` or ``area_mode_corner_floor`` > 0), a corner
+        whose target is below ``small_corner_angle`` (radians) keeps at least ``small_corner_floor``
+        x its target instead: a thin triangle's shape, and so its quasi-conformal distortion,
+        turns on the relative change of its small corners (docs/tuning.md).
     corner_floor_pass : {"start", "needed"}
         When the corner floors become bounds: from the start ("start"), or only if the solve
         without them ends with a corner below its floor, in a second pass from the start
@@ -213,6 +218,8 @@ class SolverSettings:
     window_growth: float = 2.0
     angle_margin: float = 1e-4
     corner_floor: float = 0.1
+    small_corner_floor: float = 0.5
+    small_corner_angle: float = np.radians(10.0)
     corner_floor_pass: str = "start"
     area_mode_corner_floor: float = 0.0
     area_floor: float = 1e-12
@@ -249,6 +256,8 @@ class SolverSettings:
         for name in ("ipopt_options", "area_mode_ipopt_options", "angle_mode_margin_options",
                      "warm_start_options", "area_continuation_options", "near_start_options"):
             object.__setattr__(self, name, MappingProxyType(dict(getattr(self, name))))
+        if not 0.0 <= self.small_corner_floor < 1.0:
+            raise ValueError("small_corner_floor must be in [0, 1), not %r" % (self.small_corner_floor,))
         if self.corner_floor_pass not in ("start", "needed"):
             raise ValueError("corner_floor_pass must be 'start' or 'needed', not %r" % (self.corner_floor_pass,))
 

@@ -95,7 +95,8 @@ class AngleSolution:
         is then the stopped stage's (e.g. "Maximum_WallTime_Exceeded").
     floor_corners, floor_triangles : int
         Log-chord: corners whose u, triangles whose e end at, below or within 1% of their floor
-        (``corner_floor`` x beta, or the margin; ``area_floor`` x 4 pi / t).
+        (:func:`floor_bounds`: ``corner_floor`` x beta, more for small targets, or the margin;
+        ``area_floor`` x 4 pi / t).
     """
 
     angles: np.ndarray
@@ -225,8 +226,9 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         ``on_run`` hook.
     corner_floor, area_floor : float, optional
         Override ``settings.corner_floor`` (in the area modes ``settings.area_mode_corner_floor``)
-        and ``settings.area_floor``: log-chord bounds u >= corner_floor x beta per corner and
-        e >= area_floor x 4 pi / t per triangle; 0 disables a floor.
+        and ``settings.area_floor``: log-chord bounds u >= corner_floor x beta per corner (more
+        for a corner whose target is small, :func:`floor_bounds`) and e >= area_floor x 4 pi / t
+        per triangle; 0 disables a floor.
 
     Returns
     -------
@@ -266,18 +268,24 @@ def check_floors(corner_floor, area_floor):
 def floor_bounds(targets, settings):
     """The floors as lower bounds: log u per corner (3t,) and log e per triangle (t,).
 
-    log u >= log max(margin, corner floor x beta), log e >= log(area floor x 4 pi / t) (-inf if 0).
+    log u >= log max(margin, f x beta), f the corner floor, raised to ``small_corner_floor`` for a
+    corner whose target beta is below ``small_corner_angle`` (if the corner floor is set); log e >=
+    log(area floor x 4 pi / t) (-inf if 0).
 
     Examples
     --------
     >>> from sphere_nlp.targets import Targets
-    >>> tg = Targets(np.full((2, 3), np.pi / 3), np.full(2, 2 * np.pi), 1.0, 0.0, "custom")
+    >>> angles = np.radians([[60.0, 60.0, 60.0], [5.0, 5.0, 170.0]])
+    >>> tg = Targets(angles, np.full(2, 2 * np.pi), 1.0, 0.0, "custom")
     >>> u, e = floor_bounds(tg, DEFAULT_SETTINGS)
-    >>> np.exp(u).round(4).tolist(), round(float(np.exp(e[0]) / (2 * np.pi)), 20)
-    ([0.1047, 0.1047, 0.1047, 0.1047, 0.1047, 0.1047], 1e-12)
+    >>> (np.exp(u) / angles.ravel()).round(4).tolist(), round(float(np.exp(e[0]) / (2 * np.pi)), 20)
+    ([0.1, 0.1, 0.1, 0.5, 0.5, 0.1], 1e-12)
     """
     fraction = settings.area_mode_corner_floor if targets.area_weight > 0 else settings.corner_floor
-    log_u = np.log(np.maximum(settings.angle_margin, fraction * np.asarray(targets.angles, float).ravel()))
+    beta = np.asarray(targets.angles, float).ravel()
+    if fraction > 0:
+        fraction = np.where(beta < settings.small_corner_angle, max(fraction, settings.small_corner_floor), fraction)
+    log_u = np.log(np.maximum(settings.angle_margin, fraction * beta))
     t = len(targets.excess)
     with np.errstate(divide="ignore"):
         log_e = np.full(t, np.log(settings.area_floor * 4 * np.pi / t))
