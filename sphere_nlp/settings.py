@@ -112,10 +112,11 @@ class SolverSettings:
         Angle modes: every corner keeps u = alpha - e/2 >= this fraction of its target angle beta
         (and >= ``angle_margin``), a plain bound in the log formulation; 0 leaves the margin alone.
     small_corner_floor, small_corner_angle : float
-        Where a corner floor is set (``corner_floor`` or ``area_mode_corner_floor`` > 0), a corner
-        whose target is below ``small_corner_angle`` (radians) keeps at least ``small_corner_floor``
-        x its target instead: a thin triangle's shape, and so its quasi-conformal distortion,
-        turns on the relative change of its small corners (docs/tuning.md).
+        In every mode, a corner whose target is below ``small_corner_angle`` (radians) keeps at
+        least ``small_corner_floor`` x its target (or the mode's corner floor, if larger): a thin
+        triangle's shape, and so its quasi-conformal distortion, turns on the relative change of
+        its small corners (docs/tuning.md). A ``corner_floor`` of 0 given to
+        :func:`sphere_nlp.parameterize` (``--corner-floor 0``) turns this floor off as well.
     corner_floor_pass : {"start", "needed"}
         When the corner floors become bounds: from the start ("start"), or only if the solve
         without them ends with a corner below its floor, in a second pass from the start
