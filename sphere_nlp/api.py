@@ -566,10 +566,10 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         See :mod:`sphere_nlp.targets`.
     corner_floor : float, optional
         Log-chord only: every spherical corner keeps u = alpha - e/2 >= this fraction of its target
-        angle, and a corner whose target is below 10 degrees at least half of it, in every mode
+        angle, and in the angle modes a corner whose target is below 10 degrees at least half of it
         (bounds; 0 disables both; default ``settings.corner_floor``, in the area modes
-        ``settings.area_mode_corner_floor``; the small-target rule is ``settings.small_corner_floor``
-        and ``small_corner_angle``).
+        ``settings.area_mode_corner_floor``; the small-target rule is ``settings.small_corner_floor``,
+        ``area_mode_small_corner_floor`` and ``small_corner_angle``).
     area_floor : float, optional
         Log-chord only: every spherical triangle keeps at least this fraction of the mean area
         4 pi / t (0 disables; default ``settings.area_floor``). ``floor_corners`` and

@@ -82,8 +82,8 @@ def build_parser():
                              "or uniform (the paper's (9) verbatim; default in the area modes)")
     method.add_argument("--corner-floor", type=float, metavar="F",
                         help="keep every spherical corner >= F x its target angle (default 0.1, 0 in the "
-                             "area modes), and every corner whose target is below 10 degrees >= half of "
-                             "it (0: no corner floor at all)")
+                             "area modes), and in the angle modes every corner whose target is below 10 "
+                             "degrees >= half of it (0: no corner floor at all)")
     method.add_argument("--area-floor", type=float, metavar="F",
                         help="keep every spherical triangle >= F x the mean area 4 pi / t (0: off)")
     method.add_argument("--start", metavar="SPHERE",

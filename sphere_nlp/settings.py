@@ -112,11 +112,13 @@ class SolverSettings:
         Angle modes: every corner keeps u = alpha - e/2 >= this fraction of its target angle beta
         (and >= ``angle_margin``), a plain bound in the log formulation; 0 leaves the margin alone.
     small_corner_floor, small_corner_angle : float
-        In every mode, a corner whose target is below ``small_corner_angle`` (radians) keeps at
-        least ``small_corner_floor`` x its target (or the mode's corner floor, if larger): a thin
+        Angle modes: a corner whose target is below ``small_corner_angle`` (radians) keeps at
+        least ``small_corner_floor`` x its target (or the corner floor, if larger): a thin
         triangle's shape, and so its quasi-conformal distortion, turns on the relative change of
         its small corners (docs/tuning.md). A ``corner_floor`` of 0 given to
         :func:`sphere_nlp.parameterize` (``--corner-floor 0``) turns this floor off as well.
+    area_mode_small_corner_floor : float
+        The same in the area modes (0: off; docs/tuning.md has what 0.5 does there).
     corner_floor_pass : {"start", "needed"}
         When the corner floors become bounds: from the start ("start"), or only if the solve
         without them ends with a corner below its floor, in a second pass from the start
@@ -221,6 +223,7 @@ class SolverSettings:
     corner_floor: float = 0.1
     small_corner_floor: float = 0.5
     small_corner_angle: float = np.radians(10.0)
+    area_mode_small_corner_floor: float = 0.0
     corner_floor_pass: str = "start"
     area_mode_corner_floor: float = 0.0
     area_floor: float = 1e-12
@@ -257,8 +260,9 @@ class SolverSettings:
         for name in ("ipopt_options", "area_mode_ipopt_options", "angle_mode_margin_options",
                      "warm_start_options", "area_continuation_options", "near_start_options"):
             object.__setattr__(self, name, MappingProxyType(dict(getattr(self, name))))
-        if not 0.0 <= self.small_corner_floor < 1.0:
-            raise ValueError("small_corner_floor must be in [0, 1), not %r" % (self.small_corner_floor,))
+        for name in ("small_corner_floor", "area_mode_small_corner_floor"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ValueError("%s must be in [0, 1), not %r" % (name, getattr(self, name)))
         if self.corner_floor_pass not in ("start", "needed"):
             raise ValueError("corner_floor_pass must be 'start' or 'needed', not %r" % (self.corner_floor_pass,))
 

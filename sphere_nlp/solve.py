@@ -242,7 +242,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         settings = settings.replace(**{"area_mode_corner_floor" if targets.area_weight > 0 else "corner_floor":
                                        float(corner_floor)})
         if corner_floor == 0:                    # no corner floors at all: the margin alone
-            settings = settings.replace(small_corner_floor=0.0)
+            settings = settings.replace(small_corner_floor=0.0, area_mode_small_corner_floor=0.0)
     if area_floor is not None:
         settings = settings.replace(area_floor=float(area_floor))
     if on_limit not in ON_LIMIT:
@@ -270,9 +270,9 @@ def check_floors(corner_floor, area_floor):
 def floor_bounds(targets, settings):
     """The floors as lower bounds: log u per corner (3t,) and log e per triangle (t,).
 
-    log u >= log max(margin, f x beta), f the mode's corner floor, or ``small_corner_floor`` if
-    larger for a corner whose target beta is below ``small_corner_angle`` (in every mode); log e >=
-    log(area floor x 4 pi / t) (-inf if 0).
+    log u >= log max(margin, f x beta), f the mode's corner floor, or its small-corner floor
+    (``small_corner_floor``, ``area_mode_small_corner_floor``) if larger for a corner whose target
+    beta is below ``small_corner_angle``; log e >= log(area floor x 4 pi / t) (-inf if 0).
 
     Examples
     --------
@@ -282,13 +282,16 @@ def floor_bounds(targets, settings):
     >>> u, e = floor_bounds(tg, DEFAULT_SETTINGS)
     >>> (np.exp(u) / angles.ravel()).round(4).tolist(), round(float(np.exp(e[0]) / (2 * np.pi)), 20)
     ([0.1, 0.1, 0.1, 0.5, 0.5, 0.1], 1e-12)
-    >>> u, _ = floor_bounds(Targets(angles, np.full(2, 2 * np.pi), 0.01, 1.0, "custom"), DEFAULT_SETTINGS)
+    >>> area = Targets(angles, np.full(2, 2 * np.pi), 0.01, 1.0, "custom")
+    >>> u, _ = floor_bounds(area, DEFAULT_SETTINGS.replace(area_mode_small_corner_floor=0.5))
     >>> (np.exp(u) / angles.ravel()).round(6).tolist()[3:]      # the 170-degree corner: the margin
     [0.5, 0.5, 3.4e-05]
     """
-    fraction = settings.area_mode_corner_floor if targets.area_weight > 0 else settings.corner_floor
+    area = targets.area_weight > 0
+    fraction = settings.area_mode_corner_floor if area else settings.corner_floor
+    small = settings.area_mode_small_corner_floor if area else settings.small_corner_floor
     beta = np.asarray(targets.angles, float).ravel()
-    fraction = np.where(beta < settings.small_corner_angle, max(fraction, settings.small_corner_floor), fraction)
+    fraction = np.where(beta < settings.small_corner_angle, max(fraction, small), fraction)
     log_u = np.log(np.maximum(settings.angle_margin, fraction * beta))
     t = len(targets.excess)
     with np.errstate(divide="ignore"):
