@@ -27,13 +27,11 @@ import scipy.sparse as sp
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
-def csc_from_casadi(sparsity, values):
-    """scipy CSC matrix with a CasADi sparsity pattern and its nonzeros."""
-    return sp.csc_matrix((values, np.array(sparsity.row()), np.array(sparsity.colind())),
-                         shape=(sparsity.size1(), sparsity.size2()))
+from confined_shift import csc_from_casadi     # noqa: E402 (benchmarks/, beside this script)
 
 
 def symmetric(upper):
+    """The whole symmetric matrix from its upper triangle (CasADi's Hessian pattern)."""
     return (upper + sp.triu(upper, 1).T).tocsr()
 
 
@@ -65,8 +63,10 @@ def main(argv=None):
 
     LogChordNLP.solve = recording_solve
     start = time.perf_counter()
-    result = parameterize(args.mesh, args.mode, check=False, settings=SolverSettings(on_run=on_run))
-    LogChordNLP.solve = real_solve
+    try:
+        result = parameterize(args.mesh, args.mode, check=False, settings=SolverSettings(on_run=on_run))
+    finally:
+        LogChordNLP.solve = real_solve
     run = captured["ipopt"]
     print("whole solve: %s, %d iterations, objective %.6f, %.1f s" % (
         result.status, result.iterations, result.objective, time.perf_counter() - start))
@@ -77,11 +77,11 @@ def main(argv=None):
     lbx, ubx, lbg, ubg = captured["bounds"]
     n_eq = nlp.n_equalities
     values = nlp._numeric
-    counts = {"hess": 0}
+    counts = {"hess": 0, "nan": 0}
 
     def fun(x):
         f = values.objective_and_constraints(x)[0]
-        counts["nan"] = counts.get("nan", 0) + (not np.isfinite(f))
+        counts["nan"] += not np.isfinite(f)
         return f if np.isfinite(f) else 1e30
 
     def grad(x):
@@ -111,7 +111,7 @@ def main(argv=None):
     print("trust-constr: %s (status %d), %d iterations, %d Hessians, objective %.8f, max violation %.2e, "
           "CG iterations %d, %.1f s, non-finite objectives %d" % (
               out.message, out.status, out.nit, counts["hess"], out.fun, np.abs(cons(out.x)).max(),
-              out.cg_niter, time.perf_counter() - start, counts.get('nan', 0)))
+              out.cg_niter, time.perf_counter() - start, counts["nan"]))
 
 
 if __name__ == "__main__":
