@@ -138,7 +138,13 @@ def _draw(ax, triangles, colours, view, edges=False, pieces=None):
         shown = np.zeros(len(triangles), bool)
         shown[order] = True
         keep = np.flatnonzero(shown[parent])
-        polygons = [polygons[i] for i in keep]
+        # Pad each piece to the longest by repeating its last corner: for ragged polygons mplot3d
+        # pads with uninitialised memory and autoscales over it, which can raise on inf limits.
+        longest = max((len(polygons[i]) for i in keep), default=3)
+        padded = np.empty((len(keep), longest, 3))
+        for row, i in enumerate(keep):
+            padded[row] = polygons[i][np.minimum(np.arange(longest), len(polygons[i]) - 1)]
+        polygons = padded
         shaded = _shade(colours[keep], normals[parent[keep]], eye)
     # Without drawn edges, outline each polygon in its own colour: antialiasing would otherwise
     # leave light seams between neighbours.

@@ -256,6 +256,23 @@ def test_picture_shows_what_the_mode_trades_away_by_default(cylinder_result, tmp
     assert info["view"] == best_view(result.input_vertices, result.faces)
 
 
+def test_checkerboard_panel_draws_pieces_of_mixed_corner_counts_within_the_box():
+    from matplotlib.figure import Figure
+    from sphere_nlp.picture import _draw
+
+    # A triangle cut into a triangle and a pentagon: ragged polygons that mplot3d would pad with
+    # uninitialised memory and then autoscale over.
+    triangle = np.array([[[0.0, 0.0, 0.5], [0.8, 0.0, 0.5], [0.0, 0.8, 0.5]]])
+    pieces = ([triangle[0][[0, 1, 2]] * [0.5, 0.5, 1],
+               np.array([[0.4, 0, 0.5], [0.8, 0, 0.5], [0, 0.8, 0.5], [0, 0.4, 0.5], [0.2, 0.2, 0.5]])],
+              np.array([0, 0]))
+    for _ in range(20):
+        ax = Figure().add_subplot(projection="3d")
+        assert _draw(ax, triangle, np.ones((2, 4)), (0.0, 60.0), pieces=pieces) == 2
+        assert np.isfinite(ax.xy_dataLim.get_points()).all() and np.isfinite(ax.zz_dataLim.get_points()).all()
+        assert np.abs(ax.xy_dataLim.get_points()).max() <= 1 and np.abs(ax.zz_dataLim.get_points()).max() <= 1
+
+
 def test_best_view_faces_the_broad_side_and_view_option_overrides_it(tmp_path, capsys):
     from sphere_nlp.picture import best_view
 
