@@ -117,8 +117,11 @@ class SolverSettings:
         triangle's shape, and so its quasi-conformal distortion, turns on the relative change of
         its small corners (docs/tuning.md). A ``corner_floor`` of 0 given to
         :func:`sphere_nlp.parameterize` (``--corner-floor 0``) turns this floor off as well.
-    area_mode_small_corner_floor : float
-        The same in the area modes (0: off; docs/tuning.md has what 0.5 does there).
+    area_mode_small_corner_floor, area_mode_sliver_angle : float
+        The same in the area modes (0: off, the default; docs/tuning.md has what 0.5 does there),
+        for corners whose target is at least ``area_mode_sliver_angle`` (radians): reaching its
+        target area moves the apex of an input sliver across its base, and held at half their
+        size, nefertiti.obj's thousands of 0.06-degree corners kept its solve from converging.
     corner_floor_pass : {"start", "needed"}
         When the corner floors become bounds: from the start ("start"), or only if the solve
         without them ends with a corner below its floor, in a second pass from the start
@@ -224,6 +227,7 @@ class SolverSettings:
     small_corner_floor: float = 0.5
     small_corner_angle: float = np.radians(10.0)
     area_mode_small_corner_floor: float = 0.0
+    area_mode_sliver_angle: float = np.radians(1.0)
     corner_floor_pass: str = "start"
     area_mode_corner_floor: float = 0.0
     area_floor: float = 1e-12

@@ -272,7 +272,8 @@ def floor_bounds(targets, settings):
 
     log u >= log max(margin, f x beta), f the mode's corner floor, or its small-corner floor
     (``small_corner_floor``, ``area_mode_small_corner_floor``) if larger for a corner whose target
-    beta is below ``small_corner_angle``; log e >= log(area floor x 4 pi / t) (-inf if 0).
+    beta is below ``small_corner_angle`` (and in the area modes at least
+    ``area_mode_sliver_angle``); log e >= log(area floor x 4 pi / t) (-inf if 0).
 
     Examples
     --------
@@ -282,16 +283,20 @@ def floor_bounds(targets, settings):
     >>> u, e = floor_bounds(tg, DEFAULT_SETTINGS)
     >>> (np.exp(u) / angles.ravel()).round(4).tolist(), round(float(np.exp(e[0]) / (2 * np.pi)), 20)
     ([0.1, 0.1, 0.1, 0.5, 0.5, 0.1], 1e-12)
-    >>> area = Targets(angles, np.full(2, 2 * np.pi), 0.01, 1.0, "custom")
+    >>> sliver = np.radians([[0.5, 5.0, 174.5]])
+    >>> area = Targets(np.r_[angles, sliver], np.full(3, 2 * np.pi), 0.01, 1.0, "custom")
     >>> u, _ = floor_bounds(area, DEFAULT_SETTINGS.replace(area_mode_small_corner_floor=0.5))
-    >>> (np.exp(u) / angles.ravel()).round(6).tolist()[3:]      # the 170-degree corner: the margin
-    [0.5, 0.5, 3.4e-05]
+    >>> (np.exp(u) / area.angles.ravel()).round(6).tolist()[3:]   # 170, 0.5 and 174.5 degrees: the margin
+    [0.5, 0.5, 3.4e-05, 0.011459, 0.5, 3.3e-05]
     """
     area = targets.area_weight > 0
     fraction = settings.area_mode_corner_floor if area else settings.corner_floor
     small = settings.area_mode_small_corner_floor if area else settings.small_corner_floor
     beta = np.asarray(targets.angles, float).ravel()
-    fraction = np.where(beta < settings.small_corner_angle, max(fraction, small), fraction)
+    small_target = beta < settings.small_corner_angle
+    if area:
+        small_target &= beta >= settings.area_mode_sliver_angle
+    fraction = np.where(small_target, max(fraction, small), fraction)
     log_u = np.log(np.maximum(settings.angle_margin, fraction * beta))
     t = len(targets.excess)
     with np.errstate(divide="ignore"):
