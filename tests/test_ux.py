@@ -263,7 +263,7 @@ def test_checkerboard_panel_draws_pieces_of_mixed_corner_counts_within_the_box()
     # A triangle cut into a triangle and a pentagon: ragged polygons that mplot3d would pad with
     # uninitialised memory and then autoscale over.
     triangle = np.array([[[0.0, 0.0, 0.5], [0.8, 0.0, 0.5], [0.0, 0.8, 0.5]]])
-    pieces = ([triangle[0][[0, 1, 2]] * [0.5, 0.5, 1],
+    pieces = ([triangle[0] * [0.5, 0.5, 1],
                np.array([[0.4, 0, 0.5], [0.8, 0, 0.5], [0, 0.8, 0.5], [0, 0.4, 0.5], [0.2, 0.2, 0.5]])],
               np.array([0, 0]))
     for _ in range(20):
