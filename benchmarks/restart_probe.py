@@ -23,11 +23,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from trust_region_probe import capture_margin_stage     # noqa: E402 (benchmarks/, beside this script)
+
 
 def main(argv=None):
-    from sphere_nlp.api import parameterize
-    from sphere_nlp.nlp import LogChordNLP
-    from sphere_nlp.settings import SolverSettings, WARM_START_OPTIONS
+    from sphere_nlp.settings import WARM_START_OPTIONS
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("mesh")
@@ -37,30 +37,14 @@ def main(argv=None):
                         help="initial barrier parameters of the restarts (1e-4 1e-7)")
     args = parser.parse_args(argv)
 
-    calls, kept = {}, []
-    real_solve = LogChordNLP.solve
-
-    def recording_solve(self, x0, **kwargs):
-        # each NLP's latest run: the keywords windowed_solve gives it (bounds, options)
-        calls[id(self)] = dict(kwargs)
-        return real_solve(self, x0, **kwargs)
+    kept = []
 
     def on_iterate(stage, iteration, x, lam_g, lam_x, objective):
         if stage == "margin" and iteration > 0 and iteration % args.every == 0:
             kept.append((iteration, float(objective), np.array(x), np.array(lam_g), np.array(lam_x)))
 
-    margin = {}
-
-    def on_run(stage, nlp, run):
-        if stage == "margin" and not margin:
-            margin.update(nlp=nlp, run=run, keywords=calls[id(nlp)])
-
-    LogChordNLP.solve = recording_solve
     start = time.perf_counter()
-    try:
-        result = parameterize(args.mesh, args.mode, settings=SolverSettings(on_run=on_run, on_iterate=on_iterate))
-    finally:
-        LogChordNLP.solve = real_solve
+    result, margin = capture_margin_stage(args.mesh, args.mode, on_iterate=on_iterate)
     run = margin["run"]
     print("whole solve: %s, %d iterations, objective %.6f, %.1f s" % (
         result.status, result.iterations, result.objective, time.perf_counter() - start))

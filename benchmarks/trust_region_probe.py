@@ -35,11 +35,39 @@ def symmetric(upper):
     return (upper + sp.triu(upper, 1).T).tocsr()
 
 
-def main(argv=None):
+def capture_margin_stage(mesh, mode, on_iterate=None, **keywords):
+    """``parameterize(mesh, mode, **keywords)``, and what its first margin stage's IPOPT run was given.
+
+    Returns the result and a dict: the stage's ``nlp`` (LogChordNLP), its ``run`` (IpoptRun), its start
+    ``x0`` and the ``keywords`` of its ``nlp.solve`` call (bounds, options, warm start), as windowed_solve
+    set them. ``on_iterate`` is SolverSettings' hook (stage, iteration, x, lam_g, lam_x, objective).
+    """
     from sphere_nlp.api import parameterize
     from sphere_nlp.nlp import LogChordNLP
     from sphere_nlp.settings import SolverSettings
 
+    calls, margin = {}, {}
+    real_solve = LogChordNLP.solve
+
+    def recording_solve(self, x0, **solve_keywords):
+        # each NLP's latest run: its start and keywords
+        calls[id(self)] = (np.array(x0, float), dict(solve_keywords))
+        return real_solve(self, x0, **solve_keywords)
+
+    def on_run(stage, nlp, run):
+        if stage == "margin" and not margin:
+            margin.update(nlp=nlp, run=run)
+            margin["x0"], margin["keywords"] = calls[id(nlp)]
+
+    LogChordNLP.solve = recording_solve
+    try:
+        result = parameterize(mesh, mode, settings=SolverSettings(on_run=on_run, on_iterate=on_iterate), **keywords)
+    finally:
+        LogChordNLP.solve = real_solve
+    return result, margin
+
+
+def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("mesh")
     parser.add_argument("mode")
@@ -47,34 +75,17 @@ def main(argv=None):
     parser.add_argument("--radius", type=float, default=0.1)
     args = parser.parse_args(argv)
 
-    captured = {}
-    real_solve = LogChordNLP.solve
-
-    def recording_solve(self, x0, inequalities=False, **kwargs):
-        # each NLP's latest run: its bounds as windowed_solve sets them, and its start
-        captured[id(self)] = (self._bounds(inequalities, kwargs.get("excess_bounds"), kwargs.get("log_u_lower")),
-                              np.array(x0, float))
-        return real_solve(self, x0, inequalities=inequalities, **kwargs)
-
-    def on_run(stage, nlp, run):
-        if stage == "margin" and "ipopt" not in captured:
-            captured["ipopt"], captured["nlp"] = run, nlp
-            captured["bounds"], captured["x0"] = captured[id(nlp)]
-
-    LogChordNLP.solve = recording_solve
     start = time.perf_counter()
-    try:
-        result = parameterize(args.mesh, args.mode, check=False, settings=SolverSettings(on_run=on_run))
-    finally:
-        LogChordNLP.solve = real_solve
-    run = captured["ipopt"]
+    result, margin = capture_margin_stage(args.mesh, args.mode, check=False)
+    run = margin["run"]
     print("whole solve: %s, %d iterations, objective %.6f, %.1f s" % (
         result.status, result.iterations, result.objective, time.perf_counter() - start))
     print("IPOPT margin run: %s, %d iterations, objective %.8f, %.1f s" % (
         run.status, run.iterations, run.objective, run.time_s))
 
-    nlp, x0 = captured["nlp"], captured["x0"]
-    lbx, ubx, lbg, ubg = captured["bounds"]
+    nlp, x0, keywords = margin["nlp"], margin["x0"], margin["keywords"]
+    lbx, ubx, lbg, ubg = nlp._bounds(keywords.get("inequalities", False), keywords.get("excess_bounds"),
+                                     keywords.get("log_u_lower"))
     n_eq = nlp.n_equalities
     values = nlp._numeric
     counts = {"hess": 0, "nan": 0}
