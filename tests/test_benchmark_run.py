@@ -1,8 +1,10 @@
-"""benchmarks/run.py: the rows it records for finished, hierarchical and capped cases."""
+"""benchmarks/run.py: the rows it records for finished, hierarchical and capped cases;
+benchmarks/anytime.py: its trace of a solve's iterates."""
 
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import MODELS
@@ -94,3 +96,21 @@ def test_a_rerun_replaces_its_row_and_keeps_what_it_said_beside_it(tmp_path):
     bench.write_tables(rows, str(tmp_path / "t.md"))
     table = (tmp_path / "t.md").read_text()
     assert "| previous row |" in table and "12 its, 0.5 s, not certified (new) |" in table
+
+
+def test_anytime_trace_ends_at_the_certified_optimum_and_its_row_reads_each_fraction():
+    import anytime
+
+    result, total, rows = anytime.trace(CYLINDER, "original-areas", every=5)
+    assert result.success
+    assert [row["seconds"] for row in rows] == sorted(row["seconds"] for row in rows) and rows[-1]["seconds"] <= total
+    # The last kept point is the last run's end, evaluated by the last stage's NLP: the result itself.
+    assert rows[-1]["objective"] == pytest.approx(result.objective, rel=1e-9)
+    assert rows[-1]["violation"] < 1e-8
+    assert rows[-1]["mean_abs_log_area"] == pytest.approx(
+        np.abs(np.log(result.excess / result.target_excess)).mean(), abs=1e-9)
+    assert {row["stage"] for row in rows} >= {"area-continuation-1", "margin"}
+    cells = anytime.markdown_row(CYLINDER, "original-areas", result, total, rows).split(" | ")
+    assert len(cells) == 10 and cells[0] == "| cylinder.off" and cells[-1].endswith(" |")
+    at_three_quarters = [r for r in rows if r["seconds"] <= 0.75 * total][-1]
+    assert cells[-1].split(" / ")[1].rstrip(" |") == "%.3f" % at_three_quarters["mean_abs_log_area"]
