@@ -97,7 +97,7 @@ class BarrierProblem:
         return -mu * (np.log(low[self.has_lower]).sum() + np.log(high[self.has_upper]).sum())
 
 
-def solve(problem, x, mu, f_reference, max_iter=400, tol=1e-8, report=print):
+def solve(problem, x, mu, max_iter=400, tol=1e-8, report=print):
     """The barrier method; returns (x, Newton steps, history of (steps so far, objective, violation))."""
     low, high = problem.slacks(x)
     z_low = np.where(problem.has_lower, mu / low, 0.0)
@@ -244,7 +244,7 @@ def main(argv=None):
     print("ideal trust-region barrier method from the same start, mu %.0e, %d unknowns, %d constraints"
           % (mu, len(x), problem.n_eq))
     clock = time.perf_counter()
-    x, iterations, history = solve(problem, x, mu, reference, max_iter=args.max_iter)
+    x, iterations, history = solve(problem, x, mu, max_iter=args.max_iter)
     f, c = problem.f_c(x)
     print("ideal trust region: %d steps, objective %.8f, violation %.1e, %.1f s; within 1e-3 of IPOPT's "
           "objective at step %s, 1e-6 at %s; within 1e-3 of its own at %s"
