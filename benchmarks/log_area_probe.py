@@ -21,48 +21,34 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from trust_region_probe import capture_stages     # noqa: E402 (benchmarks/, beside this script)
+
 
 def main(argv=None):
-    from sphere_nlp.api import parameterize
-    from sphere_nlp.nlp import LogChordNLP
-    from sphere_nlp.settings import SolverSettings, WARM_START_OPTIONS
+    from sphere_nlp.settings import WARM_START_OPTIONS
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("mesh")
     parser.add_argument("mode")
     args = parser.parse_args(argv)
 
-    calls, runs = {}, {}
-    real_solve = LogChordNLP.solve
-
-    def recording_solve(self, x0, **keywords):
-        calls[id(self)] = dict(keywords)
-        return real_solve(self, x0, **keywords)
-
-    def on_run(stage, nlp, run):
-        runs.setdefault(stage, (nlp, run, calls[id(nlp)]))
-
-    LogChordNLP.solve = recording_solve
-    try:
-        clock = time.perf_counter()
-        result = parameterize(args.mesh, args.mode, settings=SolverSettings(on_run=on_run), check=False)
-        total = time.perf_counter() - clock
-    finally:
-        LogChordNLP.solve = real_solve
+    clock = time.perf_counter()
+    result, stages = capture_stages(args.mesh, args.mode, ("area-continuation-1", "margin"), check=False)
+    total = time.perf_counter() - clock
     t = len(result.target_excess)
     log_target = np.log(result.target_excess)
     walk = [s for s in result.stages if s["name"].startswith("area-continuation")]
     print("default path: %d iterations (walk %d, margin stage %d), %.1f s, objective %.4f, "
           "mean |log area ratio| %.4f" % (
-              result.iterations, sum(s["iterations"] for s in walk), runs["margin"][1].iterations, total,
+              result.iterations, sum(s["iterations"] for s in walk), stages["margin"]["run"].iterations, total,
               result.objective, np.abs(np.log(result.excess) - log_target).mean()))
-    margin_values = runs["margin"][0]._numeric
+    margin_values = stages["margin"]["nlp"]._numeric
 
     def figures(x):
         f, g = margin_values.objective_and_constraints(x)
         return f, np.abs(g).max(), np.abs(x[3 * t:] - log_target).mean()
 
-    nlp, run, keywords = runs["area-continuation-1"]
+    nlp, run, keywords = (stages["area-continuation-1"][key] for key in ("nlp", "run", "keywords"))
     print("walk's end: (9) objective %.4f, violation %.1e, mean |log area ratio| %.4f" % figures(run.x))
     options = dict(keywords["options"], **WARM_START_OPTIONS)
     options.update(max_iter=3000, mu_init=1e-4)

@@ -35,18 +35,19 @@ def symmetric(upper):
     return (upper + sp.triu(upper, 1).T).tocsr()
 
 
-def capture_margin_stage(mesh, mode, on_iterate=None, **keywords):
-    """``parameterize(mesh, mode, **keywords)``, and what its first margin stage's IPOPT run was given.
+def capture_stages(mesh, mode, names, on_iterate=None, **keywords):
+    """``parameterize(mesh, mode, **keywords)``, and what the first IPOPT run of each named stage was given.
 
-    Returns the result and a dict: the stage's ``nlp`` (LogChordNLP), its ``run`` (IpoptRun), its start
-    ``x0`` and the ``keywords`` of its ``nlp.solve`` call (bounds, options, warm start), as windowed_solve
-    set them. ``on_iterate`` is SolverSettings' hook (stage, iteration, x, lam_g, lam_x, objective).
+    Returns the result and a dict from each name in ``names`` that ran (e.g. "margin",
+    "area-continuation-1") to a dict: the stage's ``nlp`` (LogChordNLP), its ``run`` (IpoptRun), its
+    start ``x0`` and the ``keywords`` of its ``nlp.solve`` call (bounds, options, warm start), as the
+    solve set them. ``on_iterate`` is SolverSettings' hook (stage, iteration, x, lam_g, lam_x, objective).
     """
     from sphere_nlp.api import parameterize
     from sphere_nlp.nlp import LogChordNLP
     from sphere_nlp.settings import SolverSettings
 
-    calls, margin = {}, {}
+    calls, captured = {}, {}
     real_solve = LogChordNLP.solve
 
     def recording_solve(self, x0, **solve_keywords):
@@ -55,16 +56,22 @@ def capture_margin_stage(mesh, mode, on_iterate=None, **keywords):
         return real_solve(self, x0, **solve_keywords)
 
     def on_run(stage, nlp, run):
-        if stage == "margin" and not margin:
-            margin.update(nlp=nlp, run=run)
-            margin["x0"], margin["keywords"] = calls[id(nlp)]
+        if stage in names and stage not in captured:
+            x0, solve_keywords = calls[id(nlp)]
+            captured[stage] = dict(nlp=nlp, run=run, x0=x0, keywords=solve_keywords)
 
     LogChordNLP.solve = recording_solve
     try:
         result = parameterize(mesh, mode, settings=SolverSettings(on_run=on_run, on_iterate=on_iterate), **keywords)
     finally:
         LogChordNLP.solve = real_solve
-    return result, margin
+    return result, captured
+
+
+def capture_margin_stage(mesh, mode, on_iterate=None, **keywords):
+    """:func:`capture_stages` for the first margin stage: (result, its dict)."""
+    result, captured = capture_stages(mesh, mode, ("margin",), on_iterate=on_iterate, **keywords)
+    return result, captured["margin"]
 
 
 def main(argv=None):
