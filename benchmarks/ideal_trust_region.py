@@ -225,10 +225,9 @@ def main(argv=None):
     start = time.perf_counter()
     result, margin = capture_margin_stage(args.mesh, args.mode, on_iterate=on_iterate, check=False)
     run, nlp, x0, keywords = margin["run"], margin["nlp"], margin["x0"], margin["keywords"]
+    lbx, ubx, _, _ = margin["bounds"]
     print("whole solve: %s, %d iterations, objective %.6f, %.1f s" % (
         result.status, result.iterations, result.objective, time.perf_counter() - start))
-    lbx, ubx, _, _ = nlp._bounds(keywords.get("inequalities", False), keywords.get("excess_bounds"),
-                                 keywords.get("log_u_lower"))
     problem = BarrierProblem(nlp, lbx, ubx)
     history = [(i, f, np.abs(problem.f_c(x)[1]).max()) for i, f, x in ipopt_history[:run.iterations + 1]]
     reference = run.objective

@@ -40,8 +40,9 @@ def capture_stages(mesh, mode, names, on_iterate=None, **keywords):
 
     Returns the result and a dict from each name in ``names`` that ran (e.g. "margin",
     "area-continuation-1") to a dict: the stage's ``nlp`` (LogChordNLP), its ``run`` (IpoptRun), its
-    start ``x0`` and the ``keywords`` of its ``nlp.solve`` call (bounds, options, warm start), as the
-    solve set them. ``on_iterate`` is SolverSettings' hook (stage, iteration, x, lam_g, lam_x, objective).
+    start ``x0``, the ``keywords`` of its ``nlp.solve`` call (bounds, options, warm start), as the
+    solve set them, and the ``bounds`` (lbx, ubx, lbg, ubg) those keywords gave the run.
+    ``on_iterate`` is SolverSettings' hook (stage, iteration, x, lam_g, lam_x, objective).
     """
     from sphere_nlp.api import parameterize
     from sphere_nlp.nlp import LogChordNLP
@@ -58,7 +59,9 @@ def capture_stages(mesh, mode, names, on_iterate=None, **keywords):
     def on_run(stage, nlp, run):
         if stage in names and stage not in captured:
             x0, solve_keywords = calls[id(nlp)]
-            captured[stage] = dict(nlp=nlp, run=run, x0=x0, keywords=solve_keywords)
+            bounds = nlp._bounds(solve_keywords.get("inequalities", False), solve_keywords.get("excess_bounds"),
+                                 solve_keywords.get("log_u_lower"))
+            captured[stage] = dict(nlp=nlp, run=run, x0=x0, keywords=solve_keywords, bounds=bounds)
 
     LogChordNLP.solve = recording_solve
     try:
@@ -90,9 +93,8 @@ def main(argv=None):
     print("IPOPT margin run: %s, %d iterations, objective %.8f, %.1f s" % (
         run.status, run.iterations, run.objective, run.time_s))
 
-    nlp, x0, keywords = margin["nlp"], margin["x0"], margin["keywords"]
-    lbx, ubx, lbg, ubg = nlp._bounds(keywords.get("inequalities", False), keywords.get("excess_bounds"),
-                                     keywords.get("log_u_lower"))
+    nlp, x0 = margin["nlp"], margin["x0"]
+    lbx, ubx, lbg, ubg = margin["bounds"]
     n_eq = nlp.n_equalities
     values = nlp._numeric
     counts = {"hess": 0, "nan": 0}
