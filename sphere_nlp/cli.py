@@ -207,6 +207,24 @@ def summary_line(output, result):
     return line
 
 
+def floor_note(result, corner_floor_given):
+    """A line on the floors after a certified run, or None: how many corners and triangles ended
+    on their floors, or, in an area mode run without a corner floor, how many corners collapsed
+    below 0.1 x their target and how to keep them."""
+    area_mode = result.target.endswith("-areas")
+    collapsed = result.usability()["corners_below_fraction"] if area_mode and not corner_floor_given else 0
+    if collapsed:
+        return ("%d of %d corners ended below 0.1 x their target angle: reaching the areas shears "
+                "their triangles; --corner-floor 0.1 keeps them, at a cost in area error (docs/tuning.md)"
+                % (collapsed, result.angles.size))
+    parts = []
+    if result.floor_corners and (corner_floor_given or not area_mode):
+        parts.append("%d corners (--corner-floor)" % result.floor_corners)
+    if result.floor_triangles:
+        parts.append("%d triangles (--area-floor)" % result.floor_triangles)
+    return " and ".join(parts) + " ended on their floors" if parts else None
+
+
 def _view(text):
     """``AZ,EL`` in degrees, for --view."""
     try:
@@ -375,6 +393,9 @@ def run(args, progress):
         _write_hook("staged")
     # Committed (interrupts.committed): from here on a signal no longer undoes the run.
     progress.say(summary_line(output, result))
+    note = floor_note(result, bool(args.corner_floor))
+    if note:
+        progress.say(note)
     return 0
 
 

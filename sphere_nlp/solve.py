@@ -470,7 +470,7 @@ def _solve_log_chord(context, on_limit):
                                                               log_area_weights=weights),
                                     context.targets, x0, context.n_faces, context.options,
                                     progress=context.stage_progress("area-continuation"), stages=context.stages,
-                                    settings=settings)
+                                    settings=settings, log_floor=context.log_u_floor)
         obtuse = context.obtuse_at(nlp, x_start)
         nlp = context.nlp(obtuse)
     run, log_u_lower = margin_stage(context, nlp, x_start)
@@ -624,8 +624,10 @@ def equality_fallback(context, nlp, x_start, x0):
     """
     run = windowed_solve(context, nlp, x_start, "equality", recentre=False)
     equality_diverged = context.diverged(nlp, run)
+    # Its corners must clear their floors (the margin, or the corner floors asked for), else the
+    # margin stage follows from it.
     if (run.success and not run.touched and not equality_diverged
-            and np.min(run.x[:3 * context.n_faces]) > np.log(nlp.angle_margin)):
+            and np.all(run.x[:3 * context.n_faces] > context.log_u_floor)):
         return run, False, None
     x_equality = x0 if equality_diverged else run.x
     restart, log_u_lower, from_equality = margin_restart(x_equality, x0, context.n_faces, nlp.angle_margin,
@@ -737,9 +739,14 @@ def margin_restart(x_equality, x_start, n_faces, angle_margin, max_lift=DEFAULT_
         Whether ``restart`` is the equality result (else the stage's start).
 
     ``log_floor`` (3 n_faces,), if given, is each corner's margin in log u instead of
-    log(angle_margin) (the corner floors, :func:`floor_bounds`).
+    log(angle_margin) (the corner floors, :func:`floor_bounds`). A corner between the angle margin
+    less ``max_lift`` and its floor is lifted to the floor, however far that is: the floors are
+    what the caller asked the map to keep (an area mode's walk ends with corners near the margin
+    that a floor of 0.1 beta is a hundred times above); only a corner far below the angle margin
+    itself keeps its own size.
     """
-    margin = np.log(angle_margin) if log_floor is None else np.asarray(log_floor, float)
+    angle_floor = np.log(angle_margin)
+    margin = angle_floor if log_floor is None else np.asarray(log_floor, float)
     restart = x_start
     # A corner already below the margin at the start counts from its own size there: nefertiti.obj
     # has two of 6e-7 rad, which grew to 7e-6 in the equality stage; measured from the margin they
@@ -749,7 +756,7 @@ def margin_restart(x_equality, x_start, n_faces, angle_margin, max_lift=DEFAULT_
                          and (any_lift or np.all(x_equality[:3 * n_faces] > floor - max_lift)))
     restart = np.array(x_equality if from_equality else x_start, float)
     log_u = restart[:3 * n_faces]
-    log_u_lower = np.where(log_u < margin - max_lift, log_u - 0.1, margin)
+    log_u_lower = np.where(log_u < np.minimum(margin, angle_floor) - max_lift, log_u - 0.1, margin)
     restart[:3 * n_faces] = np.maximum(log_u, log_u_lower + 1e-3)
     return restart, log_u_lower, from_equality
 
@@ -780,7 +787,7 @@ def area_floor_restart(x, n_faces, log_e_floor, max_lift=DEFAULT_SETTINGS.max_ma
 
 
 def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, stages=None,
-                      settings=DEFAULT_SETTINGS):
+                      settings=DEFAULT_SETTINGS, log_floor=None):
     """Walk the log excesses from the start's to the targets' (the area modes' first phase).
 
     The start (a conformal map) can be far from the area targets: on knight.off some log excesses
@@ -794,8 +801,10 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
     for (9), which the caller then solves from it. A step whose run ends far from the solution set
     (``area_continuation_violation``) is re-run from where it ended, and if that gets no nearer,
     tried again at half the length from the last point reached (``area_continuation_halvings``).
-    The steps keep the corners above a floor (:func:`continuation_floor`); they are named by
-    their fraction of the way ("area-continuation-3/4", "-more1" for a re-run).
+    The steps keep the corners above a floor (:func:`continuation_floor`: the margin, or the
+    corner floors ``log_floor`` if given, so that a walk asked to keep corners never collapses
+    them); they are named by their fraction of the way ("area-continuation-3/4", "-more1" for a
+    re-run).
 
     Parameters
     ----------
@@ -839,7 +848,8 @@ def area_continuation(nlp_for, targets, x0, n_faces, options, progress=None, sta
         nlp = nlp_for(replace(targets, excess=excess * (4 * np.pi / excess.sum())), x)
         floor, step_options = {}, capped
         if settings.area_continuation_floor:
-            floor = dict(inequalities=True, log_u_lower=continuation_floor(x0, n_faces, nlp.angle_margin))
+            floor = dict(inequalities=True, log_u_lower=continuation_floor(x0, n_faces, nlp.angle_margin,
+                                                                           log_floor))
             step_options = dict(capped, **settings.area_continuation_options)
         name = "area-continuation-%s" % tau
         run = run_ipopt(nlp, name, x, settings, stages, options=step_options, progress=progress, **floor)
@@ -907,18 +917,19 @@ def continuation_area_weights(targets, weighting="uniform"):
     return (np.asarray(targets.excess, float) / targets.excess_scale) ** 2
 
 
-def continuation_floor(x0, n_faces, angle_margin):
+def continuation_floor(x0, n_faces, angle_margin, log_floor=None):
     """Lower bounds on log u for the area continuation's steps (see ``SolverSettings.area_continuation_floor``).
 
-    ``log(angle_margin)`` for every corner, except those already below it at the start ``x0``,
-    which may not shrink below their own start size less 10%.
+    ``log(angle_margin)`` for every corner (or its floor ``log_floor``, (3 n_faces,), if given),
+    except those already below it at the start ``x0``, which may not shrink below their own start
+    size less 10%.
 
     Examples
     --------
     >>> continuation_floor(np.log([1.0, 1e-6, 0.5, 1.0]), 1, 1e-4).round(2)
     array([ -9.21, -13.92,  -9.21])
     """
-    margin = np.log(angle_margin)
+    margin = np.log(angle_margin) if log_floor is None else np.asarray(log_floor, float)
     log_u = np.asarray(x0, float)[:3 * n_faces]
     return np.where(log_u < margin, log_u - 0.1, margin)
 

@@ -246,6 +246,23 @@ def test_margin_restart_never_lifts_a_corner_far():
     assert from_equality and np.array_equal(restart, far) and lower[1] == pytest.approx(far[1] - 0.1)
 
 
+def test_margin_restart_lifts_a_corner_to_its_floor_however_far_above_the_margin_it_is():
+    # The corner floors (0.1 beta) can be a hundred times the margin: an area mode's walk ends with
+    # corners near the margin, which the floor a caller asked for must still hold at the end.
+    from sphere_nlp.solve import margin_restart
+    margin, t = 1e-4, 2
+    start = np.log(np.array([0.5, 2e-4, 2.0, 6e-7, 0.3, 2.8, 0.01, 0.02]))
+    floor = np.log(np.array([0.05, 0.05, 0.2, 0.05, 0.03, 0.28]))
+    restart, lower, from_equality = margin_restart(start, start, t, margin, log_floor=floor)
+    assert from_equality
+    # 2e-4 is 5.5 below its floor in the log (more than max_margin_lift): lifted to it all the same.
+    assert lower[1] == floor[1] and restart[1] == pytest.approx(floor[1] + 1e-3)
+    # 6e-7 is far below the angle margin itself: it keeps its own size, less 10%, as bound.
+    assert lower[3] == pytest.approx(start[3] - 0.1) and restart[3] == start[3]
+    assert np.array_equal(np.delete(lower, 3), np.delete(floor, 3))
+    assert np.all(restart[:6] > lower) and np.array_equal(restart[6:], start[6:])
+
+
 def _diverging_runs(count, keep_best=False, keep_x=False):
     """An ``on_run`` hook that makes the first ``count`` "margin" or "equality" runs end at NaN
     (a diverged run, whatever IPOPT did), and the real verdicts on those runs. Unless ``keep_best``,
@@ -278,6 +295,21 @@ def test_falls_back_to_the_equality_stage_when_the_direct_margin_stage_diverges(
     names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
     assert names[0] == "margin" and "equality" in names[1:]
     assert verdicts[0] is False                   # the real check passed that run: no false alarm
+    assert r.certificate.valid and r.max_constraint_violation <= 1e-8
+
+
+def test_the_equality_fallback_keeps_the_corner_floors_asked_for():
+    # The equality stage has no bounds: its result, near the optimum without floors, collapses the
+    # tentacles' corners (an area mode), so the margin stage must follow from it, lifting them.
+    from meshgen import tentacle_creature
+
+    settings, _, _ = _diverging_runs(1)
+    V, F = tentacle_creature()
+    r = sphere_nlp.parameterize((V, F), target="original-areas", settings=settings, corner_floor=0.1)
+    names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
+    assert names[:3] == ["margin", "equality", "margin"]
+    u = r.angles - r.excess[:, None] / 2
+    assert (u >= 0.1 * r.target_angles * (1 - 1e-9)).all()
     assert r.certificate.valid and r.max_constraint_violation <= 1e-8
 
 
