@@ -15,7 +15,7 @@ from sphere_nlp import starts
 from sphere_nlp.targets import MODES, make_targets
 
 from conftest import small_log_chord_problem
-from meshgen import ellipsoid
+from meshgen import ellipsoid, tentacle_creature
 
 SETTINGS = SolverSettings()
 
@@ -301,8 +301,6 @@ def test_falls_back_to_the_equality_stage_when_the_direct_margin_stage_diverges(
 def test_the_equality_fallback_keeps_the_corner_floors_asked_for():
     # The equality stage has no bounds: its result, near the optimum without floors, collapses the
     # tentacles' corners (an area mode), so the margin stage must follow from it, lifting them.
-    from meshgen import tentacle_creature
-
     settings, _, _ = _diverging_runs(1)
     V, F = tentacle_creature()
     r = sphere_nlp.parameterize((V, F), target="original-areas", settings=settings, corner_floor=0.1)

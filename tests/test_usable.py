@@ -126,13 +126,18 @@ def test_area_modes_can_keep_small_target_corners_too_and_corner_floor_zero_turn
     assert floored.usability()["mean_abs_log_area"] <= free.usability()["mean_abs_log_area"]
 
 
-def test_a_corner_floor_holds_in_the_area_modes_at_the_cost_of_their_area_error():
+@pytest.fixture(scope="module")
+def tentacle_area_maps():
+    """The tentacle creature in original-areas, without and with a corner floor of 0.1."""
+    V, F = tentacle_creature()
+    return (V, F), parameterize((V, F), "original-areas"), parameterize((V, F), "original-areas", corner_floor=0.1)
+
+
+def test_a_corner_floor_holds_in_the_area_modes_at_the_cost_of_their_area_error(tentacle_area_maps):
     # The tentacle creature's near-authalic map fattens its thin limbs to their share of the area,
     # which shears their triangles: over 500 corners end below 0.1 x target. Asked for, the floor
     # holds for every corner, and the areas pay for it (docs/tuning.md has the shared meshes).
-    V, F = tentacle_creature()
-    free = parameterize((V, F), "original-areas")
-    floored = parameterize((V, F), "original-areas", corner_floor=0.1)
+    _, free, floored = tentacle_area_maps
     assert free.success and floored.success
     assert free.usability()["corners_below_fraction"] > 100
     u = floored.angles - floored.excess[:, None] / 2
@@ -263,24 +268,23 @@ def test_cli_floor_and_weighting_options(tmp_path):
     assert data["corner_weighting"] == "uniform" and data["floor_triangles"] == 0
 
 
-def test_cli_says_how_many_corners_an_area_mode_collapsed_and_what_ended_on_a_floor(tmp_path, capsys):
+def test_cli_says_how_many_corners_an_area_mode_collapsed_and_what_ended_on_a_floor(tmp_path, capsys,
+                                                                                    tentacle_area_maps):
     from sphere_nlp.cli import main
     from sphere_nlp.mesh_io import write_mesh
 
-    V, F = tentacle_creature()
+    (V, F), result, floored = tentacle_area_maps
     mesh = tmp_path / "tentacles.off"
     write_mesh(mesh, V, F)
     assert main([str(mesh), "-o", str(tmp_path / "free.off"), "--target", "original-areas"]) == 0
     collapsed = [line for line in capsys.readouterr().err.splitlines() if "below 0.1 x their target" in line]
     count = int(collapsed[0].split()[0])
-    result = parameterize((V, F), "original-areas")
     assert count == result.usability()["corners_below_fraction"] > 100
     assert "--corner-floor 0.1 keeps them" in collapsed[0]
     assert main([str(mesh), "-o", str(tmp_path / "floored.off"), "--target", "original-areas",
                  "--corner-floor", "0.1"]) == 0
     err = capsys.readouterr().err
     assert "below 0.1 x their target" not in err
-    floored = parameterize((V, F), "original-areas", corner_floor=0.1)
     assert "%d corners (--corner-floor)" % floored.floor_corners in err and "ended on their floors" in err
 
 
