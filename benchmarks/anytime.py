@@ -55,7 +55,7 @@ def trace(mesh, mode, every=10):
     rows = []
     for elapsed, stage, iteration, x in kept:
         f, g = values.objective_and_constraints(x)
-        rows.append(dict(seconds=round(elapsed, 1), stage=stage, iteration=iteration, objective=float(f),
+        rows.append(dict(seconds=elapsed, stage=stage, iteration=iteration, objective=float(f),
                          violation=float(np.abs(g).max()),
                          mean_abs_log_area=float(np.abs(x[3 * t:] - log_target).mean())))
     return result, total, rows
