@@ -567,9 +567,10 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     corner_floor : float, optional
         Log-chord only: every spherical corner keeps u = alpha - e/2 >= this fraction of its target
         angle, and in the angle modes a corner whose target is below 10 degrees at least half of it
-        (bounds; 0 disables both; default ``settings.corner_floor``, in the area modes
-        ``settings.area_mode_corner_floor``; the small-target rule is ``settings.small_corner_floor``,
-        ``area_mode_small_corner_floor`` and ``small_corner_angle``). The area modes' default is
+        (bounds; 0 disables both, and ``settings.sliver_band``; default ``settings.corner_floor``,
+        in the area modes ``settings.area_mode_corner_floor``; the small-target rule is
+        ``settings.small_corner_floor``, ``area_mode_small_corner_floor`` and
+        ``small_corner_angle``). The area modes' default is
         0: their areas decide the shapes, and 0.1 costs area error (docs/tuning.md).
     area_floor : float, optional
         Log-chord only: every spherical triangle keeps at least this fraction of the mean area

@@ -248,9 +248,10 @@ USABILITY_KEYS = ("valid", "flipped", "qc_max", "qc_max_target", "sliver_targets
                   "min_area_ratio", "mean_abs_angle_diff_deg", "mean_abs_log_area")
 
 # Targets with a corner below this (radians, 1 degree) are slivers: a map that keeps such a corner to
-# within a few per cent still shears the triangle by a ratio in the hundreds (koala.obj's worst, a
-# 0.08/179.84/0.08-degree triangle kept to 0.003 degrees, measures 1,556), so the shape ratio is
-# reported over the other triangles and the slivers are held by the corner count instead.
+# within a few per cent can still shear the triangle by a ratio in the hundreds (koala.obj's worst, a
+# 0.08/179.84/0.08-degree triangle kept to 0.003 degrees, measures 1,556 without the solve's sliver
+# band), so the ratio against the targets is reported over the other triangles, and the ratio
+# against the 3D shapes (qc_max) is the one that charges slivers.
 SLIVER_TARGET_ANGLE = np.radians(1.0)
 
 

@@ -590,6 +590,7 @@ class _AngleProblem:
         self._functions = None
         self._callbacks = None
         self._solvers = {}
+        self.log_u_band = None               # (lower, upper) on log u where the bounds apply, or None
 
     def evaluate(self, x):
         """Objective and equality-constraint residuals at x (numpy)."""
@@ -633,6 +634,10 @@ class _AngleProblem:
     def _bounds(self, inequalities, excess_bounds=None, log_u_lower=None):
         lbx = self._variable_lower_bounds(inequalities, log_u_lower)
         ubx = np.full(self.n_variables, np.inf)
+        if inequalities and self.log_u_band is not None:
+            lower, upper = self.log_u_band
+            t3 = 3 * self.n_faces
+            lbx[:t3], ubx[:t3] = np.maximum(lbx[:t3], lower), upper
         if excess_bounds is not None:
             lbx[3 * self.n_faces:], ubx[3 * self.n_faces:] = excess_bounds
         lbg = np.zeros(self.n_equalities + (self.n_inequalities if inequalities else 0))
@@ -870,6 +875,9 @@ class LogChordNLP(_AngleProblem):
         solve first (:func:`sphere_nlp.solve.area_continuation`) before (9) itself.
     log_area_weights : (t,) array, optional
         The weights w of the "log" area term (default 1 for every triangle).
+    log_u_band : pair of (3t,) arrays, optional
+        Lower and upper bounds on log u (-inf, inf where none) that the runs with bounds add to
+        their own (:func:`sphere_nlp.solve.sliver_band_bounds`).
     obtuse_corners : (t, 3) bool array, optional
         Corners whose sin alpha and sin u in (8) are written through the other two
         corners (sin alpha_j = sin(u_k + u_l), sin u_j = sin(u_k + u_l + e/2), equal under (6)),
@@ -898,7 +906,7 @@ class LogChordNLP(_AngleProblem):
 
     def __init__(self, connectivity, targets, dropped_vertices=(), angle_margin=DEFAULT_SETTINGS.angle_margin,
                  dropped_penalty=DEFAULT_SETTINGS.dropped_penalty, area_form="linear", obtuse_corners=None,
-                 evaluation="numpy", hessian="exact", log_area_weights=None):
+                 evaluation="numpy", hessian="exact", log_area_weights=None, log_u_band=None):
         if evaluation not in EVALUATIONS:
             raise ValueError("evaluation must be one of %s, not %r" % (EVALUATIONS, evaluation))
         if area_form not in ("linear", "log"):
@@ -908,6 +916,7 @@ class LogChordNLP(_AngleProblem):
         t = connectivity.n_faces
         self._start(connectivity, "log-chord", 4 * t)
         self.angle_margin = float(angle_margin)
+        self.log_u_band = log_u_band
         if obtuse_corners is None:
             obtuse_corners = np.zeros((t, 3), dtype=bool)
         obtuse_corners = np.asarray(obtuse_corners, dtype=bool)

@@ -132,6 +132,14 @@ class SolverSettings:
         Every triangle keeps its excess >= this fraction of the mean 4 pi / t, so that double
         precision can place it (a bound on log e; at 1e-12 its edges are >= 1e-6 of the mean edge,
         leaving about 10 significant digits of the unit-sphere positions for its shape); 0 disables it.
+    sliver_band : float
+        Angle modes: a triangle whose target has a corner below 1 degree and two small corners
+        a, b (radians) with ``sliver_band`` x (a + b) <= 0.5 keeps each of them within that
+        relative distance of its target (bounds on log u); 0 turns it off, as does a
+        ``corner_floor`` of 0. Such a sliver's apex moves along its base by
+        (change of b - change of a) / (a + b) of its height, so small relative errors of its
+        corners shear it a long way: the band keeps that shear below 2 x ``sliver_band``
+        (docs/tuning.md, "sliver_band").
     max_floor_lift : float
         A triangle whose start is below the area floor by less than this in log e is lifted to it
         (a start off the solution set), one further below keeps its own size less 10% as bound;
@@ -231,6 +239,7 @@ class SolverSettings:
     corner_floor_pass: str = "start"
     area_mode_corner_floor: float = 0.0
     area_floor: float = 1e-12
+    sliver_band: float = 2.5
     max_floor_lift: float = np.inf
     max_margin_lift: float = 1.0
     dropped_penalty: float = 100.0
@@ -267,6 +276,8 @@ class SolverSettings:
         for name in ("small_corner_floor", "area_mode_small_corner_floor"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError("%s must be in [0, 1), not %r" % (name, getattr(self, name)))
+        if not self.sliver_band >= 0:
+            raise ValueError("sliver_band must be >= 0, not %r" % (self.sliver_band,))
         if self.corner_floor_pass not in ("start", "needed"):
             raise ValueError("corner_floor_pass must be 'start' or 'needed', not %r" % (self.corner_floor_pass,))
 

@@ -242,7 +242,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         settings = settings.replace(**{"area_mode_corner_floor" if targets.area_weight > 0 else "corner_floor":
                                        float(corner_floor)})
         if corner_floor == 0:                    # no corner floors at all: the margin alone
-            settings = settings.replace(small_corner_floor=0.0, area_mode_small_corner_floor=0.0)
+            settings = settings.replace(small_corner_floor=0.0, area_mode_small_corner_floor=0.0, sliver_band=0.0)
     if area_floor is not None:
         settings = settings.replace(area_floor=float(area_floor))
     if on_limit not in ON_LIMIT:
@@ -304,6 +304,49 @@ def floor_bounds(targets, settings):
     return log_u, log_e
 
 
+def sliver_band_bounds(targets, settings):
+    """Bounds on log u (3t,) that keep the shape of the target's slivers, or None if there are none.
+
+    Angle modes: in a triangle whose target has a corner below 1 degree, the two smallest corners
+    a, b keep u within a relative ``settings.sliver_band`` x (a + b) of their targets, where
+    that is at most 0.5 (a sliver with one small corner, a needle, has no such pair and no band).
+    Its apex moves along its base by (change of b - change of a) / (a + b) of its height,
+    so without the band a few per cent of error in 0.1-degree corners shears it 30-fold
+    (koala.obj: worst quasi-conformal ratio 1,556 against its 3D shape; docs/tuning.md).
+
+    Returns
+    -------
+    (lower, upper) : pair of (3t,) arrays (-inf and inf off the band), or None
+
+    Examples
+    --------
+    >>> from sphere_nlp.targets import Targets
+    >>> angles = np.radians([[60.0, 60.0, 60.0], [0.2, 179.5, 0.3], [0.5, 89.75, 89.75]])
+    >>> tg = Targets(angles, np.full(3, 4 * np.pi / 3), 1.0, 0.0, "custom")
+    >>> lower, upper = sliver_band_bounds(tg, DEFAULT_SETTINGS)
+    >>> np.isfinite(upper).nonzero()[0].tolist()       # the cap's two small corners only
+    [3, 5]
+    >>> (np.exp(upper[[3, 5]]) / angles[1, [0, 2]] - 1).round(4).tolist()   # 2.5 x 0.5 degrees
+    [0.0218, 0.0218]
+    """
+    if targets.area_weight > 0 or settings.sliver_band <= 0:
+        return None
+    beta = np.asarray(targets.angles, float)
+    order = np.argsort(beta, axis=1)[:, :2]
+    small = np.take_along_axis(beta, order, axis=1)
+    width = settings.sliver_band * small.sum(axis=1)
+    banded = ((small[:, 0] < np.radians(1.0)) & (width <= 0.5)
+              & (small[:, 0] * (1 - width) > settings.angle_margin))
+    if not banded.any():
+        return None
+    corners = (3 * np.flatnonzero(banded)[:, None] + order[banded]).ravel()
+    target = beta.ravel()[corners]
+    half = np.repeat(width[banded], 2)
+    lower, upper = np.full(beta.size, -np.inf), np.full(beta.size, np.inf)
+    lower[corners], upper[corners] = np.log(target * (1 - half)), np.log(target * (1 + half))
+    return lower, upper
+
+
 @dataclass
 class _Context:
     """What the stages of one solve share: the problem, the IPOPT options, the log of runs.
@@ -330,6 +373,7 @@ class _Context:
     log_u_floor: np.ndarray = None
     log_e_floor: np.ndarray = None
     log_e_lower: np.ndarray = None
+    log_u_band: tuple = None
     walk: bool = False
     stages: list = field(default_factory=list)
 
@@ -362,6 +406,7 @@ class _Context:
         log_u_floor, log_e_floor = floor_bounds(targets, settings)
         return cls(connectivity=connectivity, targets=targets, formulation=formulation, settings=settings,
                    log_u_floor=log_u_floor, log_e_floor=log_e_floor,
+                   log_u_band=sliver_band_bounds(targets, settings),
                    options=options, warm_options=warm_options, first_options=first_options, progress=progress,
                    initial=initial, dropped=dropped, walk=walk,
                    hessian=settings.area_mode_hessian if area_mode else "exact",
@@ -374,6 +419,7 @@ class _Context:
     def nlp(self, obtuse_corners, targets=None, dropped_vertices=None, **keywords):
         """The log-chord NLP with this solve's left-out vertices, Hessian, margin and penalty."""
         keywords.setdefault("dropped_penalty", self.settings.dropped_penalty)
+        keywords.setdefault("log_u_band", self.log_u_band)
         return LogChordNLP(self.connectivity, self.targets if targets is None else targets,
                            dropped_vertices=self.dropped if dropped_vertices is None else dropped_vertices,
                            obtuse_corners=obtuse_corners, hessian=self.hessian,

@@ -234,3 +234,16 @@ def degree_cap(degree=1000, n_body=300):
     inward = np.einsum("ij,ij->i", normal, P[F].mean(axis=1)) < 0
     F[inward] = F[inward][:, ::-1]
     return P, F
+
+
+def with_cap_sliver(vertices, faces, face, gap=2e-4, where=0.3):
+    """The mesh with triangle ``face`` = (a, b, c) split in three at a new vertex just inside it,
+    ``gap`` x |ab| from edge ab at ``where`` of the way from a: (a, b, new) is a cap sliver (two
+    corners of about ``gap / where`` and ``gap / (1 - where)`` radians, one near pi). Its faces come last."""
+    a, b, c = faces[face]
+    foot = vertices[a] + where * (vertices[b] - vertices[a])
+    towards = vertices[c] - foot
+    new = foot + gap * np.linalg.norm(vertices[b] - vertices[a]) * towards / np.linalg.norm(towards)
+    k = len(vertices)
+    F = np.vstack([np.delete(faces, face, axis=0), [[a, b, k], [b, c, k], [c, a, k]]])
+    return np.vstack([vertices, new]), F
