@@ -670,10 +670,11 @@ def equality_fallback(context, nlp, x_start, x0):
     """
     run = windowed_solve(context, nlp, x_start, "equality", recentre=False)
     equality_diverged = context.diverged(nlp, run)
-    # Its corners must clear their floors (the margin, or the corner floors asked for), else the
-    # margin stage follows from it.
+    # Its corners and triangles must clear their floors (the margin and the corner floors, the
+    # area floor), else the margin stage follows from it.
+    t3 = 3 * context.n_faces
     if (run.success and not run.touched and not equality_diverged
-            and np.all(run.x[:3 * context.n_faces] > context.log_u_floor)):
+            and np.all(run.x[:t3] > context.log_u_floor) and np.all(run.x[t3:] >= context.log_e_floor)):
         return run, False, None
     x_equality = x0 if equality_diverged else run.x
     restart, log_u_lower, from_equality = margin_restart(x_equality, x0, context.n_faces, nlp.angle_margin,

@@ -311,6 +311,19 @@ def test_the_equality_fallback_keeps_the_corner_floors_asked_for():
     assert r.certificate.valid and r.max_constraint_violation <= 1e-8
 
 
+def test_the_equality_fallback_keeps_the_area_floor():
+    # The equality stage has no bounds: on this ellipsoid its result, the optimum without floors,
+    # has triangles of 0.05 of the mean and every corner clear of its floor, so only the area floor
+    # tells that the margin stage must follow from it (the 173k Loop armadillo with --area-floor
+    # 1e-10: returned with triangles of 1.1e-12 of the mean).
+    settings, _, _ = _diverging_runs(1)
+    V, F = ellipsoid(2, axes=(1.0, 2.0, 0.7))
+    r = sphere_nlp.parameterize((V, F), target="original-angles", settings=settings, area_floor=0.1)
+    assert [s["name"] for s in r.stages][:3] == ["margin", "equality", "margin"]
+    assert r.excess.min() >= 0.1 * 4 * np.pi / len(F) * (1 - 1e-9)
+    assert r.certificate.valid and r.max_constraint_violation <= 1e-8
+
+
 @pytest.mark.parametrize("mode, keep_x", [("original-areas", False), ("equal-areas", False),
                                           ("original-angles", False), ("original-areas", True)])
 def test_a_diverged_margin_stage_resumes_from_its_best_iterate_near_the_constraints(mode, keep_x):
