@@ -314,8 +314,7 @@ def test_the_equality_fallback_keeps_the_corner_floors_asked_for():
 def test_the_equality_fallback_keeps_the_area_floor():
     # The equality stage has no bounds: on this ellipsoid its result, the optimum without floors,
     # has triangles of 0.05 of the mean and every corner clear of its floor, so only the area floor
-    # tells that the margin stage must follow from it (the 173k Loop armadillo with --area-floor
-    # 1e-10: returned with triangles of 1.1e-12 of the mean).
+    # tells that the margin stage must follow from it.
     settings, _, _ = _diverging_runs(1)
     V, F = ellipsoid(2, axes=(1.0, 2.0, 0.7))
     r = sphere_nlp.parameterize((V, F), target="original-angles", settings=settings, area_floor=0.1)
