@@ -1,6 +1,7 @@
 """The Python API: :func:`parameterize` runs the whole pipeline and returns one result object."""
 
 import functools
+import math
 import numbers
 import os
 import resource
@@ -20,6 +21,7 @@ from .mesh_io import (check_mesh_path, load_mesh, write_image, write_json, write
                       write_npz)
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, status_kind
 from .settings import DEFAULT_SETTINGS
+from .polish import authalic_route, default_budget
 from .solve import check_floors, ON_LIMIT, solve_angles
 from .starts import checked_positions
 from .targets import MODES, make_targets
@@ -150,6 +152,7 @@ class SphericalParameterization:
     floor_corners: int = 0
     floor_triangles: int = 0
     recovery: dict = None
+    area_route: dict = None
 
     def __repr__(self):
         return ("SphericalParameterization(%d vertices, target=%r, status=%r, certified=%s, %.2f s)"
@@ -319,6 +322,7 @@ class SphericalParameterization:
             "floor_corners": int(self.floor_corners),
             "floor_triangles": int(self.floor_triangles),
             "recovery": self.recovery,
+            "area_route": self.area_route,
             "usability": self.usability() if np.isfinite(self.vertices).all() else None,
             "success": bool(self.success),
             "converged": bool(self.converged),
@@ -473,8 +477,9 @@ def _check_arguments(angle_weight, area_weight, max_iter, max_time, ipopt_option
             raise errors.UsageError("max_iter must be between 1 and 2**31 - 1, not %d" % max_iter)
     if max_time is not None:
         seconds = _real(max_time, "max_time")
-        if not (np.isfinite(seconds) and seconds > 0):
-            raise errors.UsageError("max_time must be a finite number of seconds > 0, not %r" % (max_time,))
+        if not seconds > 0:
+            raise errors.UsageError("max_time must be a number of seconds > 0 (inf: no limit), not %r"
+                                    % (max_time,))
     if ipopt_options is not None:
         if not isinstance(ipopt_options, dict):
             raise errors.UsageError("ipopt_options must be a dict, not %s" % type(ipopt_options).__name__)
@@ -527,10 +532,12 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     max_iter : int, optional
         IPOPT iteration limit per stage (>= 1).
     max_time : float, optional
-        Wall-clock limit of the whole call, in seconds (finite, > 0): every IPOPT stage stops at
-        its first iteration past it, so the call returns after at most one more iteration, the
-        unfolding and the certificate (and with ``on_limit="project"`` the projection, which may
-        take a fifth of ``max_time`` plus 5 s more).
+        Wall-clock limit of the whole call, in seconds (> 0; ``math.inf``: none): every IPOPT
+        stage stops at its first iteration past it, so the call returns after at most one more
+        iteration, the unfolding and the certificate (and with ``on_limit="project"`` the
+        projection, which may take a fifth of ``max_time`` plus 5 s more). The area modes have a
+        default budget (:func:`sphere_nlp.polish.default_budget`, 1.5 ms a vertex, at least 10 s),
+        shared by the authalic stage and the NLP's polish; ``math.inf`` runs both to the end.
     on_limit : {"fail", "project"}
         When the main (margin) stage reaches ``max_iter`` or ``max_time``: fail (default: SolveError
         with ``check``, ``solved=False``), or project its last iterate onto the constraints and go
@@ -542,8 +549,11 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         Called once per IPOPT iteration.
     on_stage : callable(name), optional
         Called as each stage begins: "load", "build", "solve", "unfold", "certify".
-    start : {"auto", "conformal", "embedding", "linear"} or (n_input, 3) array, optional
-        Starting point of the solve: a valid spherical triangulation, either the Mobius-centred
+    start : {"authalic", "auto", "conformal", "embedding", "linear"} or (n_input, 3) array, optional
+        ``"authalic"`` (default in the area modes with log-chord): the authalic route of
+        :mod:`sphere_nlp.polish`, a first-order authalic map that the NLP then polishes within the
+        run's budget and never makes worse (its record is ``result.area_route``). Otherwise the
+        starting point of the solve: a valid spherical triangulation, either the Mobius-centred
         conformal map when it is bijective or the convex embedding (``auto``, default for log-chord;
         see :func:`sphere_nlp.starts.starting_positions`), or the paper's linear least-squares start
         (default for faithful and substituted). An array gives the start's unit-sphere positions,
@@ -622,6 +632,9 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     check_run_options(target, formulation, on_limit, max_iter, max_time, angle_weight, area_weight,
                       ipopt_options)
     check_floors(corner_floor, area_floor)
+    unlimited = max_time is not None and math.isinf(float(max_time))
+    if unlimited:
+        max_time = None
     timings = {}
     clock = time.perf_counter()
     run_started = clock
@@ -649,18 +662,36 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     if start is not None and not isinstance(start, str):
         # Certified here, before the solve is announced, so a wrong start gets only its error.
         start = checked_positions(connectivity, _start_in_repaired_numbering(start, prepared))
-    lap("build", "solve")
-    solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
-                            max_iter=max_iter, max_time=max_time, progress=progress,
-                            vertices=prepared.normalised_vertices, start=start, on_limit=on_limit,
-                            settings=settings, corner_floor=corner_floor, area_floor=area_floor)
-    lap("solve", "unfold")
+    area_route = None
+    if start == "authalic" or (start is None and targets.area_weight > 0 and formulation == "log-chord"):
+        if formulation != "log-chord" or targets.area_weight == 0:
+            raise errors.UsageError("start='authalic' is the area modes' route and needs the log-chord formulation")
+        # The run's own max_time bounds everything already (the decorator's deadline); without
+        # one, the area modes' default budget; math.inf, none at all.
+        budget = (default_budget(connectivity.n_vertices, settings or DEFAULT_SETTINGS)
+                  if max_time is None and not unlimited else None)
+        lap("build", "solve")
+        route = authalic_route(connectivity, prepared.normalised_vertices, targets, budget=budget,
+                               settings=settings, progress=progress, ipopt_options=ipopt_options,
+                               max_iter=max_iter, corner_floor=corner_floor, area_floor=area_floor)
+        solution, area_route = route.solution, route.record
+        lap("solve", "unfold")
+        positions, unfold_info = route.positions, route.unfold_info
+    else:
+        lap("build", "solve")
+        solution = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
+                                max_iter=max_iter, max_time=max_time, progress=progress,
+                                vertices=prepared.normalised_vertices, start=start, on_limit=on_limit,
+                                settings=settings, corner_floor=corner_floor, area_floor=area_floor)
+        lap("solve", "unfold")
     # Symbolic derivatives and IPOPT set-up happen inside the solve; book them as build time.
     build_s = sum(s["build_s"] for s in solution.stages)
     timings["solve"] -= build_s
     timings["build"] += build_s
 
-    if not solution.success and interrupts.deadline_passed():
+    if area_route is not None:
+        pass                                    # the route's map is certified and placed already
+    elif not solution.success and interrupts.deadline_passed():
         # Out of time and nothing to write: the unfolding of a failed iterate is skipped
         # (bipyramid(1000) stopped by max_time: 26 s of unfolding after the limit).
         positions, unfold_info = np.full((connectivity.n_vertices, 3), np.nan), {}
@@ -702,7 +733,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         stages=solution.stages, timings=timings, repairs=prepared.repairs,
         unfold_info=unfold_info, peak_rss_mb=peak_rss_mb(), start=solution.start,
         corner_weighting=targets.corner_weighting, floor_corners=solution.floor_corners,
-        floor_triangles=solution.floor_triangles, recovery=recovery)
+        floor_triangles=solution.floor_triangles, recovery=recovery, area_route=area_route)
     if check and not solution.success:
         raise errors.SolveError(solve_failure_message(solution.status, solution.iterations), result)
     if check and not certificate.valid:

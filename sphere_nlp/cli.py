@@ -92,9 +92,11 @@ def build_parser():
                              "their walk, and solving a map again takes a few iterations")
     limits = parser.add_argument_group("solver limits (reaching one is a failure, unless --on-limit project)")
     limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit per stage (>= 1)")
-    limits.add_argument("--max-time", type=float, metavar="S",
+    limits.add_argument("--max-time", type=_seconds, metavar="S",
                         help="wall-clock limit of the whole run, seconds (> 0; the solve stops at its first "
-                             "IPOPT iteration past it)")
+                             "IPOPT iteration past it). The area modes have a budget by default (1.5 ms a "
+                             "vertex, at least 10 s) for their authalic map and its polish; 'none' lets the "
+                             "polish run to IPOPT's optimum")
     limits.add_argument("--on-limit", choices=ON_LIMIT, default="fail",
                         help="when the main stage reaches a limit: fail (default), or project its last "
                              "iterate onto the constraints and write that certified, not optimal, sphere")
@@ -104,9 +106,9 @@ def build_parser():
     return parser
 
 
-# A solve stage running this long without --max-time gets one note on how to bound it: the area
-# modes' main stage takes 15-35 minutes at 43k-50k vertices and had not converged after 2.5 hours at
-# 173k (README, Sizes and speed).
+# A solve stage running this long without a time limit gets one note on how to bound it: the area
+# modes' NLP run to its optimum (--max-time none) takes 15-35 minutes at 43k-50k vertices and had not
+# converged after 2.5 hours at 173k (README, Sizes and speed).
 LONG_STAGE_S = 600.0
 # The figure is benchmarks/anytime.md's: at half of its time an area-mode run is within about 3% of
 # the optimum's objective and has its area error.
@@ -200,7 +202,10 @@ def summary_line(output, result):
             "distortion %.2f°, mean |log area ratio| %.3f"
             % (output, len(result.vertices), result.target, result.timings["total"], c.degree,
                d["mean_abs_angle_diff_deg"], d["mean_abs_log_area"]))
-    if not result.converged:
+    if result.area_route is not None:
+        from .polish import describe
+        line += "; " + describe(result.area_route)
+    elif not result.converged:
         line += ("; NOT OPTIMAL: the solve stopped at its limit (IPOPT %s after %d iterations, objective "
                  "%.6g) and its last iterate was projected onto the constraints"
                  % (result.status, result.iterations, result.objective))
@@ -298,12 +303,22 @@ def check_output_paths(input_path, outputs):
             raise errors.UsageError("cannot write %s %s: %s" % (option, path, exc.strerror or exc)) from None
 
 
+def _seconds(text):
+    """--max-time: seconds, or 'none' (no limit: inf)."""
+    if text.strip().lower() == "none":
+        return math.inf
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError("expected seconds or 'none', not %r" % text) from None
+
+
 def check_arguments(args):
     """Option values the parser cannot check itself (UsageError), before the mesh is read."""
     from .api import _check_arguments
 
-    for option, value in (("--max-time", args.max_time), ("--angle-weight", args.angle_weight),
-                          ("--area-weight", args.area_weight)):
+    for option, value in (("--max-time", None if args.max_time == math.inf else args.max_time),
+                          ("--angle-weight", args.angle_weight), ("--area-weight", args.area_weight)):
         if value is not None and not math.isfinite(value):
             raise errors.UsageError("%s must be a finite number, not %s" % (option, value))
     if args.max_time is not None and args.max_time <= 0:

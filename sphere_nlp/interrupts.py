@@ -63,6 +63,11 @@ def deadline_passed():
     return time.perf_counter() >= _deadline
 
 
+def seconds_left():
+    """Seconds until the run's deadline (inf without one)."""
+    return _deadline - time.perf_counter()
+
+
 def stop_requested():
     """True when IPOPT should stop now: a signal is pending or the run's deadline has passed."""
     return _pending is not None or time.perf_counter() >= _deadline

@@ -207,6 +207,18 @@ class SolverSettings:
     start_gauge : {"excess", "area"}
         Mobius normalisation of the angle modes' start (:func:`sphere_nlp.starts.starting_positions`);
         the area modes keep "area" (their continuation sets the scale).
+    area_mode_budget_per_vertex, area_mode_min_budget : float
+        Area modes: the run's default time budget in seconds, ``max(area_mode_min_budget,
+        area_mode_budget_per_vertex x n)`` for n vertices, shared by the authalic stage and the
+        NLP's polish (:mod:`sphere_nlp.polish`); ``max_time`` overrides it.
+    authalic_share : float
+        The fraction of the run's budget the authalic stage may take; the polish has the rest.
+    authalic_stall : float
+        The authalic stage also stops when its energy fell by less than this fraction over its
+        last 50 steps.
+    polish_slack : float
+        The polish keeps each triangle's |log(e / e')| within this of the authalic map's, so that
+        a triangle already at its target keeps some room (:func:`sphere_nlp.polish.no_worse_band`).
     on_run : callable(stage, nlp, run), optional
         Called after every IPOPT run with the run's name (e.g. "margin", "margin-recentred",
         "area-continuation-1/2"), its NLP (:func:`sphere_nlp.nlp.AngleNLP`) and its
@@ -264,6 +276,11 @@ class SolverSettings:
     projection_iterations: int = 50
     obtuse_angle: float = np.pi / 2
     start_gauge: str = "excess"
+    area_mode_budget_per_vertex: float = 1.5e-3
+    area_mode_min_budget: float = 10.0
+    authalic_share: float = 0.75
+    authalic_stall: float = 1e-3
+    polish_slack: float = 1e-3
     on_run: object = None
     on_iterate: object = None
     modify_hessian: object = None

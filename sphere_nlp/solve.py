@@ -191,7 +191,7 @@ def independent_vertices(positions, degrees=None):
 
 def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_options=None,
                  max_iter=None, max_time=None, progress=None, vertices=None, start=None, on_limit="fail",
-                 settings=None, corner_floor=None, area_floor=None):
+                 settings=None, corner_floor=None, area_floor=None, excess_band=None):
     """Solve the angle NLP (see the module docstring for the strategy of each formulation).
 
     Parameters
@@ -229,6 +229,10 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         and ``settings.area_floor``: log-chord bounds u >= corner_floor x beta per corner (more
         for a corner whose target is small, :func:`floor_bounds`) and e >= area_floor x 4 pi / t
         per triangle; 0 disables a floor.
+    excess_band : ((t,) array, (t,) array), optional
+        Log-chord: lower and upper bounds on every triangle's log excess, kept by the margin stage
+        and the projection (the polish of an authalic map keeps each triangle's area ratio from
+        moving away from its target: :func:`sphere_nlp.polish.no_worse_band`).
 
     Returns
     -------
@@ -255,6 +259,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         initial = initial_point(connectivity, targets, start, vertices, gauge)
         context = _Context.make(connectivity, targets, formulation, settings, ipopt_options, max_iter, max_time,
                                 progress, initial)
+        context.log_e_band = excess_band
         if formulation == "log-chord":
             return _solve_with_corner_floor(context, on_limit)
         return _solve_paper_form(context)
@@ -374,6 +379,7 @@ class _Context:
     log_e_floor: np.ndarray = None
     log_e_lower: np.ndarray = None
     log_u_band: tuple = None
+    log_e_band: tuple = None
     walk: bool = False
     stages: list = field(default_factory=list)
 
@@ -443,6 +449,12 @@ class _Context:
 
     def violation(self, nlp, run):
         return max_constraint_violation(self.connectivity, *nlp.unpack(run.x))
+
+    def excess_bounds(self, lower, upper):
+        """Bounds on log e: (lower, upper) within ``log_e_band`` where the caller gave one."""
+        if self.log_e_band is None:
+            return lower, upper
+        return np.maximum(lower, self.log_e_band[0]), np.minimum(upper, self.log_e_band[1])
 
 
 def run_ipopt(nlp, name, x, settings, stages=None, **solve_keywords):
@@ -590,7 +602,7 @@ def windowed_solve(context, nlp, x_start, name, inequalities=False, recentre=Tru
         lower = log_e - window if log_e_lower is None else np.maximum(log_e - window, log_e_lower)
         run = run_ipopt(nlp, name if round_ == 0 else "%s-recentred" % name, x, settings, context.stages,
                         inequalities=inequalities, options=run_options, progress=context.stage_progress(name),
-                        excess_bounds=(lower, log_e + window), log_u_lower=log_u_lower,
+                        excess_bounds=context.excess_bounds(lower, log_e + window), log_u_lower=log_u_lower,
                         abort_violation=settings.abort_violation, abort_iterations=settings.abort_iterations,
                         sound_violation=settings.sound_violation, **warm)
         moved = np.max(np.abs(run.x[3 * t:] - log_e), initial=0.0)
@@ -731,7 +743,8 @@ def _projected_solution(context, nlp, stopped, log_u_lower):
                                               context.formulation, context.dropped, context.options,
                                               log_u_lower, context.window,
                                               progress=context.stage_progress("projection"),
-                                              settings=context.settings, stages=context.stages)
+                                              settings=context.settings, stages=context.stages,
+                                              excess_band=context.log_e_band)
     return _solution(context, *nlp.unpack(projection.x), projection, stopped_status=stopped.status)
 
 
@@ -982,7 +995,8 @@ def continuation_floor(x0, n_faces, angle_margin, log_floor=None):
 
 
 def project_onto_constraints(connectivity, targets, nlp, x, formulation, dropped, options, log_u_lower,
-                             excess_window, progress=None, settings=DEFAULT_SETTINGS, stages=None):
+                             excess_window, progress=None, settings=DEFAULT_SETTINGS, stages=None,
+                             excess_band=None):
     """The feasible point nearest a log-chord iterate ``x`` (a stage stopped short), by IPOPT.
 
     The same constraints and bounds (log u >= ``log_u_lower``, log e within ``excess_window`` of
@@ -990,7 +1004,8 @@ def project_onto_constraints(connectivity, targets, nlp, x, formulation, dropped
     (beta, e') = the iterate's angles and excesses, both weights 1. That objective is convex in
     (alpha, e) and the start is its unconstrained minimum, so IPOPT converges like an angle mode
     from a near start (docs/tuning.md, "projection_iterations"). Run with the angle modes' small
-    initial barrier and at most ``settings.projection_iterations`` iterations.
+    initial barrier and at most ``settings.projection_iterations`` iterations. ``excess_band``
+    (lower, upper), optional: bounds on log e kept too (see :func:`solve_angles`).
 
     Returns
     -------
@@ -1007,8 +1022,11 @@ def project_onto_constraints(connectivity, targets, nlp, x, formulation, dropped
     projection_options["max_iter"] = settings.projection_iterations
     t = len(excess)
     log_e = x[3 * t:]
+    lower, upper = log_e - excess_window, log_e + excess_window
+    if excess_band is not None:
+        lower, upper = np.maximum(lower, excess_band[0]), np.minimum(upper, excess_band[1])
     return run_ipopt(projection, "projection", x, settings, stages, inequalities=True, options=projection_options,
-                     progress=progress, excess_bounds=(log_e - excess_window, log_e + excess_window),
+                     progress=progress, excess_bounds=(lower, upper),
                      log_u_lower=log_u_lower)
 
 

@@ -1,0 +1,369 @@
+"""The fast authalic stage of the area modes: a bijective near-area-preserving map before the NLP.
+
+Two steps, both on vertex positions (plain numpy and scipy.sparse):
+
+1. :func:`stretch_energy_map`: stretch-energy minimisation (SEM; Yueh, Lin, Wu & Yau, J. Sci.
+   Comput. 78, 2019), a fixed-point iteration of Laplacian solves whose edge weights are the image's
+   cotangents times its area stretch. One sparse solve per step moves area across the whole sphere
+   at once, which is what a conformal start needs: its limbs are shrunk by factors of e^10 and more,
+   far beyond what any local step could undo.
+2. :func:`authalic_descent`: Riemannian L-BFGS on the product of spheres (S^2)^n (after Sutti &
+   Yueh, 2024, who use Barzilai-Borwein gradient descent) of the energy
+   ``mean((log(Omega_t / e'_t))^2)``, where ``Omega_t`` is the solid angle (spherical area) of
+   triangle t and ``e'_t`` its target area. The logarithm is a barrier: a step that would make any
+   triangle's solid angle non-positive is shortened, so every iterate is a certified map.
+
+:func:`authalic_map` runs both; every map it returns is certified.
+
+Examples
+--------
+>>> from sphere_nlp.shapes import cylinder
+>>> from sphere_nlp.connectivity import build_connectivity
+>>> from sphere_nlp.geometry import triangle_areas
+>>> from sphere_nlp.starts import starting_positions
+>>> V, F = cylinder()
+>>> start, _ = starting_positions(build_connectivity(F, len(V)), V)
+>>> target = triangle_areas(V, F) * (4 * np.pi / triangle_areas(V, F).sum())
+>>> result = authalic_map(V, F, start, target)
+>>> certify(result.positions, F).valid, result.mean_abs_log_area < 0.1 * result.start_mean_abs_log_area
+(True, True)
+"""
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from . import interrupts
+from .certify import certify
+from .conformal import _inverse_stereographic
+from .geometry import signed_solid_angles
+from .untangle import untangle
+
+
+def mean_abs_log_area(positions, faces, target_excess):
+    """mean |log(spherical area / target area)| over the triangles (inf if any is not positive)."""
+    omega = signed_solid_angles(positions, faces)
+    if not (omega > 0).all():
+        return float("inf")
+    return float(np.mean(np.abs(np.log(omega / target_excess))))
+
+
+# --- stretch-energy minimisation ----------------------------------------------------------------------
+
+def _stereographic(positions):
+    """Plane points (n, 2) of unit vectors, projected from the north pole (inverse of
+    ``conformal._inverse_stereographic``)."""
+    return positions[:, :2] / (1 - positions[:, 2])[:, None]
+
+
+def stretch_laplacian(positions, faces, target_share):
+    """The stretch Laplacian L_S(f) of the sphere map ``positions``, (n, n) sparse.
+
+    Edge weights are the cotangents of the image's chord triangles times each triangle's stretch
+    (its share of the image area over its share of the target), as in Yueh et al. (2019); x^T L x is
+    then the stretch energy of x, and L_S(f) f = 0 on the free vertices at an area-preserving f.
+    """
+    corners = positions[faces]
+    to_next = np.roll(corners, -1, axis=1) - corners
+    to_prev = np.roll(corners, 1, axis=1) - corners
+    twice_area = np.linalg.norm(np.cross(to_next, to_prev), axis=2)
+    cot = np.einsum("tjk,tjk->tj", to_next, to_prev) / twice_area
+    image_share = twice_area[:, 0] / twice_area[:, 0].sum()
+    weight = 0.5 * cot * (image_share / target_share)[:, None]
+    n = len(positions)
+    i = np.roll(faces, -1, axis=1).ravel()
+    j = np.roll(faces, -2, axis=1).ravel()
+    w = weight.ravel()
+    W = sp.coo_matrix((np.r_[w, w], (np.r_[i, j], np.r_[j, i])), shape=(n, n)).tocsr()
+    return (sp.diags(np.asarray(W.sum(axis=1)).ravel()) - W).tocsr()
+
+
+def stretch_energy_map(positions, faces, target_excess, max_steps=50, radius=1.3, deadline=None):
+    """Stretch-energy minimisation from a bijective sphere map; the positions after it, (n, 3).
+
+    Each step inverts the stereographic plane (so that the other hemisphere is inside), solves the
+    stretch Laplacian for the vertices within ``radius`` of the origin with the rest fixed, and
+    lifts the plane back to the sphere. It stops when the stretch energy stops decreasing (keeping
+    the better map), after ``max_steps``, or at ``deadline`` (a ``time.perf_counter`` value). The
+    result is not certified here: the SEM step is not orientation-safe (a few triangles can flip).
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    target_share = target_excess / target_excess.sum()
+    S = np.asarray(positions, dtype=float)
+    # Rotate so that no vertex sits at the north pole, which the projection sends to infinity.
+    pole = S[np.argmax(S[:, 2])]
+    if pole[2] > 1 - 1e-6:
+        S = S @ _rotation_taking(pole, np.array([0.0, -np.sqrt(0.5), np.sqrt(0.5)])).T
+    orientation = np.sign(signed_solid_angles(S, faces).sum())
+
+    def energy(X):
+        L = stretch_laplacian(X, faces, target_share)
+        return float(np.einsum("ij,ij->", X, L @ X)) / 2, L
+
+    E, L = energy(S)
+    plane = _stereographic(S)
+    for _ in range(max_steps):
+        if deadline is not None and time.perf_counter() > deadline:
+            break
+        interrupts.raise_if_interrupted()
+        plane_new = plane / np.einsum("ij,ij->i", plane, plane)[:, None]      # z -> 1 / conj(z)
+        inner = np.linalg.norm(plane_new, axis=1) < radius
+        if inner.all() or not inner.any():
+            break
+        L_inner = L[inner][:, inner].tocsc()
+        rhs = -(L[inner][:, ~inner] @ plane_new[~inner])
+        try:
+            plane_new[inner] = spla.splu(L_inner).solve(np.asarray(rhs))
+        except RuntimeError:                 # singular: the weights degenerated
+            break
+        plane_new /= np.median(np.linalg.norm(plane_new, axis=1))
+        S_new = _inverse_stereographic(plane_new)
+        # The inversion is orientation-reversing on the sphere; mirror to keep the faces' orientation.
+        if np.sign(signed_solid_angles(S_new, faces).sum()) != orientation:
+            plane_new[:, 0] = -plane_new[:, 0]
+            S_new = _inverse_stereographic(plane_new)
+        if not np.isfinite(S_new).all():
+            break
+        E_new, L_new = energy(S_new)
+        if not E_new < E:
+            break
+        S, plane, E, L = S_new, plane_new, E_new, L_new
+    return S
+
+
+def _rotation_taking(a, b):
+    """A rotation matrix R with R a = b for unit vectors a, b (Rodrigues)."""
+    v = np.cross(a, b)
+    c = float(_dot(a, b))
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + K + K @ K / (1 + c)
+
+
+# --- Riemannian descent ---------------------------------------------------------------------------------
+
+def _dot(a, b):
+    # einsum, not BLAS: a threaded BLAS dot on vectors this size is slower than one core's loop,
+    # and far slower when other processes hold the cores.
+    return float(np.einsum("i,i->", a, b))
+
+
+def _area_penalty(r):
+    """phi(r) and phi'(r) of a log area ratio r: (e^r - 1)^2 above the target, as (9) charges it,
+    r^2 below it, a barrier as the triangle shrinks to nothing (the two agree to second order at 0)."""
+    grow = np.expm1(np.maximum(r, 0))
+    value = np.where(r > 0, grow * grow, r * r)
+    slope = np.where(r > 0, 2 * grow * (grow + 1), 2 * r)
+    return value, slope
+
+
+class AuthalicEnergy:
+    """The area term of objective (9) with a barrier, over unit positions, and its gradient.
+
+    ``E = sum_t a_t phi(log(Omega_t / e'_t))`` with ``a_t = (e'_t / e_mean)^2``: near the targets
+    ``((e - e') / e_mean)^2 = a_t (e/e' - 1)^2``, (9)'s own area term; below a target ``phi`` is
+    the squared logarithm, which keeps every triangle positively oriented (:func:`_area_penalty`).
+    The angle term of (9) is left to the NLP polish: a first-order method converges slowly on it.
+    """
+
+    def __init__(self, faces, target_excess, n_vertices):
+        self.faces = np.asarray(faces, dtype=np.int64)
+        self.log_target = np.log(target_excess)
+        self.area_coeff = (target_excess / target_excess.mean()) ** 2
+        self.n = n_vertices
+
+    def log_ratio(self, X):
+        """log(Omega_t / e'_t), or None if some triangle is not positively oriented or the map's
+        degree is not 1 (sum of solid angles other than 4 pi)."""
+        omega = signed_solid_angles(X, self.faces)
+        if not (omega > 0).all() or abs(omega.sum() - 4 * np.pi) > 1e-6:
+            return None
+        return np.log(omega) - self.log_target
+
+    def value(self, X):
+        """(E, log ratios); E = inf and None where X is not a valid map."""
+        r = self.log_ratio(X)
+        if r is None:
+            return np.inf, None
+        return float(np.sum(self.area_coeff * _area_penalty(r)[0])), r
+
+    def gradient(self, X, r):
+        """Riemannian gradient of E at X: its ambient gradient projected onto the tangent planes."""
+        f = self.faces
+        P = X[f]
+        a, b, c = P[:, 0], P[:, 1], P[:, 2]
+        # Omega = 2 atan2(N, D), N = det[a, b, c], D = 1 + a.b + b.c + c.a (Van Oosterom & Strackee),
+        # so dOmega = 2 (D dN - N dD) / (N^2 + D^2), with dN/da = b x c and dD/da = b + c.
+        N = np.einsum("ij,ij->i", a, np.cross(b - a, c - a))
+        D = 1 + np.einsum("ij,ij->i", a, b) + np.einsum("ij,ij->i", b, c) + np.einsum("ij,ij->i", c, a)
+        omega = np.exp(r + self.log_target)
+        scale = (self.area_coeff * _area_penalty(r)[1] / omega) * 2 / (N * N + D * D)
+        sD, sN = (scale * D)[:, None], (scale * N)[:, None]
+        grad = np.stack([sD * np.cross(b, c) - sN * (b + c),
+                         sD * np.cross(c, a) - sN * (c + a),
+                         sD * np.cross(a, b) - sN * (a + b)], axis=1)
+        G = np.empty_like(X)
+        for k in range(3):
+            G[:, k] = np.bincount(f.ravel(), grad[:, :, k].ravel(), self.n)
+        return G - np.einsum("ij,ij->i", G, X)[:, None] * X
+
+
+@dataclass
+class DescentTrace:
+    """Per accepted step: seconds since the descent began, energy and mean |log area ratio|."""
+    seconds: list = field(default_factory=list)
+    energy: list = field(default_factory=list)
+    mean_abs_log_area: list = field(default_factory=list)
+
+
+def _dot(a, b):
+    # einsum, not BLAS: a threaded BLAS dot on vectors of this size is slower than one core's loop,
+    # and many times slower while other processes hold the cores.
+    return float(np.einsum("i,i->", a, b))
+
+
+def authalic_descent(positions, faces, target_excess, deadline=None, stall=1e-3, tolerance=1e-4,
+                     max_steps=100000, memory=10, progress=None):
+    """Riemannian L-BFGS of :class:`AuthalicEnergy` from a certified map; (positions, trace).
+
+    Directions come from the two-loop recursion over the last ``memory`` steps (vectors in R^3n,
+    projected onto the tangent planes, the usual transport on a product of spheres); the step is
+    taken in R^3n and each vertex normalised back onto the sphere (the retraction). A step is
+    halved until every solid angle is positive, their sum 4 pi, and the energy lower by Armijo's
+    rule, so every iterate is a bijective map. Stops at ``deadline`` (a ``time.perf_counter``
+    value), after ``max_steps``, when the mean |log area ratio| is below ``tolerance``, or when the
+    energy fell by less than ``stall`` of itself over the last 50 steps. ``progress(stage, step, energy, 0.0, seconds)`` is called after each step.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    n = len(positions)
+    energy = AuthalicEnergy(faces, target_excess, n)
+    X = np.asarray(positions, dtype=float)
+    X = X / np.linalg.norm(X, axis=1, keepdims=True)
+    E, ratio = energy.value(X)
+    if not np.isfinite(E):
+        raise ValueError("the descent needs a map with every triangle positively oriented")
+    G = energy.gradient(X, ratio)
+    s_list, y_list = [], []
+    trace = DescentTrace()
+    began = time.perf_counter()
+    for step_count in range(1, max_steps + 1):
+        if deadline is not None and time.perf_counter() > deadline:
+            break
+        interrupts.raise_if_interrupted()
+        found = _line_search(energy, X, E, G, _lbfgs_direction(G.ravel(), s_list, y_list))
+        if found is None and s_list:
+            # The memory's direction led nowhere the barrier allows: start again from the gradient.
+            s_list.clear(), y_list.clear()
+            found = _line_search(energy, X, E, G, _lbfgs_direction(G.ravel(), s_list, y_list))
+        if found is None:
+            break
+        X_new, E_new, ratio_new = found
+        G_new = energy.gradient(X_new, ratio_new)
+        s, y = (X_new - X).ravel(), (G_new - G).ravel()
+        if _dot(s, y) > 1e-12 * np.sqrt(_dot(s, s) * _dot(y, y)):   # keep the inverse Hessian positive
+            s_list.append(s), y_list.append(y)
+            if len(s_list) > memory:
+                s_list.pop(0), y_list.pop(0)
+        X, E, ratio, G = X_new, E_new, ratio_new, G_new
+        trace.seconds.append(time.perf_counter() - began)
+        trace.energy.append(E)
+        trace.mean_abs_log_area.append(float(np.mean(np.abs(ratio))))
+        if progress is not None:
+            progress("authalic", step_count, E, 0.0, trace.seconds[-1])
+        if (trace.mean_abs_log_area[-1] < tolerance
+                or len(trace.energy) > 50 and trace.energy[-51] - E < stall * E):
+            break
+    return X, trace
+
+
+def _line_search(energy, X, E, G, h):
+    """The step along -h (tangent part) that Armijo's rule and the barrier accept, halving from 1 or
+    from a step of 0.1 rad: (X_new, E_new, log ratios), or None."""
+    d = -h.reshape(X.shape)
+    d -= np.einsum("ij,ij->i", d, X)[:, None] * X
+    slope = _dot(G.ravel(), d.ravel())
+    if not slope < 0:
+        return None
+    # At most 0.1 rad per vertex and step: a long step could jump over a flipped configuration.
+    step = min(1.0, 0.1 / max(np.linalg.norm(d, axis=1).max(), 1e-300))
+    for _ in range(40):
+        X_new = X + step * d
+        X_new /= np.linalg.norm(X_new, axis=1, keepdims=True)
+        E_new, ratio_new = energy.value(X_new)
+        if E_new <= E + 1e-4 * step * slope:
+            return X_new, E_new, ratio_new
+        step *= 0.5
+    return None
+
+
+def _lbfgs_direction(g, s_list, y_list):
+    """The L-BFGS two-loop recursion: H g for the inverse-Hessian estimate of the stored pairs."""
+    q = g.copy()
+    alphas = []
+    for s, y in zip(reversed(s_list), reversed(y_list)):
+        alpha = _dot(s, q) / _dot(y, s)
+        q -= alpha * y
+        alphas.append(alpha)
+    if s_list:
+        q *= _dot(s_list[-1], y_list[-1]) / _dot(y_list[-1], y_list[-1])
+    else:
+        q *= 1e-3 / max(np.abs(q).max(), 1e-300)        # a first step of 1e-3 rad at the most
+    for s, y, alpha in zip(s_list, y_list, reversed(alphas)):
+        q += (alpha - _dot(y, q) / _dot(y, s)) * s
+    return q
+
+
+# --- the stage ------------------------------------------------------------------------------------------
+
+@dataclass
+class AuthalicMap:
+    """The authalic stage's map (certified) and how it got there.
+
+    ``mean_abs_log_area`` is against the target areas; ``sem_mean_abs_log_area`` that of the SEM
+    step (inf if it did not give a bijective map, even after untangling); ``seconds`` the stage's
+    wall time, ``sem_seconds`` the part spent in SEM and untangling; ``trace`` the descent's.
+    """
+    positions: np.ndarray
+    mean_abs_log_area: float
+    start_mean_abs_log_area: float
+    sem_mean_abs_log_area: float
+    seconds: float
+    sem_seconds: float
+    trace: DescentTrace
+
+    @property
+    def steps(self):
+        return len(self.trace.energy)
+
+
+def authalic_map(vertices, faces, start, target_excess, max_time=None, stall=1e-3, progress=None):
+    """A bijective map of the mesh whose spherical areas approach ``target_excess``.
+
+    ``start`` is a certified map of the mesh (the conformal start); ``vertices`` the 3D positions
+    (for untangling SEM's flipped triangles). Runs :func:`stretch_energy_map`, kept if it (after
+    untangling) is bijective and nearer the targets, then :func:`authalic_descent` from the better
+    map, within ``max_time`` seconds. The result is the start itself at worst.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    target_excess = np.asarray(target_excess, dtype=float)
+    began = time.perf_counter()
+    deadline = None if max_time is None else began + max_time
+    best = np.asarray(start, dtype=float)
+    start_error = best_error = mean_abs_log_area(best, faces, target_excess)
+    sem = stretch_energy_map(best, faces, target_excess, deadline=deadline)
+    if not certify(sem, faces).valid:
+        # SEM's solves are not orientation-safe: re-embed small disks around the few flipped triangles.
+        sem, _ = untangle(sem, faces, mesh_vertices=vertices)
+    sem_error = np.inf if sem is None or not certify(sem, faces).valid else mean_abs_log_area(sem, faces,
+                                                                                               target_excess)
+    if sem_error < best_error:
+        best, best_error = sem, sem_error
+    sem_seconds = time.perf_counter() - began
+    X, trace = authalic_descent(best, faces, target_excess, deadline=deadline, stall=stall, progress=progress)
+    return AuthalicMap(positions=X, mean_abs_log_area=mean_abs_log_area(X, faces, target_excess),
+                       start_mean_abs_log_area=start_error, sem_mean_abs_log_area=sem_error,
+                       seconds=time.perf_counter() - began, sem_seconds=sem_seconds, trace=trace)

@@ -1,0 +1,181 @@
+"""The area modes' route: the authalic stage's map, then the NLP's polish of it under a budget.
+
+The angle-space NLP converges slowly near an area-mode optimum from any start, while a first-order
+authalic flow (:mod:`sphere_nlp.authalic`) reaches the same area accuracy in a fraction of the
+time. So the area modes run:
+
+1. the authalic stage: a certified map whose spherical areas are near the targets e';
+2. the polish: the log-chord NLP of objective (9) started from that map, with each triangle's log
+   excess kept within ``|log(e_a / e')| + polish_slack`` of log e' (:func:`no_worse_band`, e_a the
+   authalic map's excess), so that it trades for (9)'s angle term only what it gains in area
+   accuracy. It ends at IPOPT's optimum within the budget, else at its last iterate projected
+   onto the constraints (``on_limit="project"``);
+3. the never-worse rule: the polished map is the answer only if it certifies and neither its mean
+   |log(e / e')| nor its objective (9) is above the authalic map's; otherwise the authalic map is.
+
+:func:`authalic_route` runs the three and returns the answer as an
+:class:`~sphere_nlp.solve.AngleSolution` with its positions and a record of both maps.
+
+Examples
+--------
+>>> from sphere_nlp.shapes import cylinder
+>>> from sphere_nlp.connectivity import build_connectivity
+>>> from sphere_nlp.targets import make_targets
+>>> V, F = cylinder()
+>>> C = build_connectivity(F, len(V))
+>>> route = authalic_route(C, V, make_targets("original-areas", V, F, C.vertex_degree), budget=20)
+>>> route.record["answer"] in ("polished", "authalic"), route.solution.success
+(True, True)
+>>> route.record["mean_abs_log_area"] <= route.record["authalic"]["mean_abs_log_area"]
+True
+"""
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import interrupts
+from .authalic import authalic_map
+from .certify import certify
+from .geometry import signed_solid_angles
+from .settings import DEFAULT_SETTINGS
+from .solve import AngleSolution, max_constraint_violation, objective_value, solve_angles
+from .starts import angles_and_excess, starting_positions
+from .unfold import unfold
+
+
+def default_budget(n_vertices, settings=DEFAULT_SETTINGS):
+    """The area modes' default time budget for a mesh of ``n_vertices``, in seconds."""
+    return max(settings.area_mode_min_budget, settings.area_mode_budget_per_vertex * n_vertices)
+
+
+def no_worse_band(excess, target_excess, slack):
+    """Bounds (lower, upper) on log e that keep each |log(e / e')| within ``slack`` of its value at
+    ``excess``: a triangle may move towards its target area, past it by as far as it was, and no
+    further (``slack`` leaves room to one already at its target).
+
+    >>> lower, upper = no_worse_band(np.array([2.0, 1.0]), np.array([1.0, 1.0]), 0.01)
+    >>> np.round(np.exp([lower, upper]), 3).tolist()
+    [[0.5, 0.99], [2.0, 1.01]]
+    """
+    log_target = np.log(target_excess)
+    half = np.abs(np.log(excess) - log_target) + slack
+    return log_target - half, log_target + half
+
+
+@dataclass
+class AreaRoute:
+    """The answer of the area modes' route: ``solution`` (its angles, excesses, status, stages),
+    ``positions`` (certified unit vectors), ``unfold_info`` (of the polished map's unfolding; empty
+    for the authalic map, which is not unfolded), and ``record`` (JSON-safe: both maps'
+    objective (9) and mean |log area ratio|, times, and which map is the answer, with why)."""
+    solution: AngleSolution
+    positions: np.ndarray
+    unfold_info: dict
+    record: dict
+
+
+def _area_error(positions, faces, target_excess):
+    omega = signed_solid_angles(positions, faces)
+    return float(np.mean(np.abs(np.log(omega / target_excess)))) if (omega > 0).all() else math.inf
+
+
+def authalic_route(connectivity, vertices, targets, budget=None, settings=None, progress=None, on_stage=None,
+                   **solve_keywords):
+    """Authalic stage, polish and never-worse rule (module docstring) within ``budget`` seconds.
+
+    ``budget`` None means no limit: the authalic stage runs until it stalls and the polish to
+    IPOPT's optimum. ``solve_keywords`` go to :func:`~sphere_nlp.solve.solve_angles` (ipopt_options,
+    max_iter, corner_floor, area_floor). ``on_stage(name)`` is called with "authalic" and "polish".
+    """
+    settings = DEFAULT_SETTINGS if settings is None else settings
+    faces = connectivity.faces
+    began = time.perf_counter()
+    with interrupts.deadline(budget):
+        if on_stage is not None:
+            on_stage("authalic")
+        start, start_kind = starting_positions(connectivity, vertices)
+        left = interrupts.seconds_left()
+        stage_time = None if math.isinf(left) else settings.authalic_share * left
+        stage = authalic_map(vertices, faces, start, targets.excess, max_time=stage_time,
+                             stall=settings.authalic_stall, progress=progress)
+        authalic_angles, authalic_excess = angles_and_excess(stage.positions, faces)
+        authalic_objective = objective_value(targets, authalic_angles, authalic_excess)
+        record = {"start": start_kind,
+                  "authalic": {"seconds": round(stage.seconds, 3), "sem_seconds": round(stage.sem_seconds, 3),
+                               "descent_steps": stage.steps, "objective": authalic_objective,
+                               "mean_abs_log_area": stage.mean_abs_log_area,
+                               "start_mean_abs_log_area": stage.start_mean_abs_log_area,
+                               "sem_mean_abs_log_area": stage.sem_mean_abs_log_area}}
+        polish_began = time.perf_counter()
+        polished = None
+        if not interrupts.deadline_passed():
+            if on_stage is not None:
+                on_stage("polish")
+            band = no_worse_band(authalic_excess, targets.excess, settings.polish_slack)
+            left = interrupts.seconds_left()
+            polished = solve_angles(connectivity, targets, start=stage.positions, vertices=vertices,
+                                    on_limit="project", excess_band=band, settings=settings, progress=progress,
+                                    max_time=None if math.isinf(left) else left, **solve_keywords)
+    answer, reason, positions, unfold_info = "authalic", "no time left for the polish", stage.positions, {}
+    if polished is not None:
+        reason = _rejection(polished, connectivity, targets, stage.mean_abs_log_area, authalic_objective)
+        if reason is None:
+            candidate, info = unfold(connectivity, polished.angles, excess=polished.excess)
+            candidate = candidate / np.linalg.norm(candidate, axis=1, keepdims=True)
+            error = _area_error(candidate, faces, targets.excess)
+            if not certify(candidate, faces).valid:
+                reason = "the polished map failed its certificate"
+            elif error > stage.mean_abs_log_area:
+                reason = "the polish raised the mean |log area ratio|"
+            else:
+                answer, reason, positions, unfold_info = "polished", None, candidate, info
+    if answer == "polished":
+        solution = polished
+    else:
+        solution = AngleSolution(
+            angles=authalic_angles, excess=authalic_excess, success=True,
+            status=polished.status if polished is not None else "Not_Polished",
+            iterations=polished.iterations if polished is not None else 0, objective=authalic_objective,
+            max_constraint_violation=max_constraint_violation(connectivity, authalic_angles, authalic_excess),
+            stages=polished.stages if polished is not None else [], initial_angles=authalic_angles,
+            initial_excess=authalic_excess, start="authalic", converged=False)
+    record.update({
+        "answer": answer, "reason": reason, "budget": budget,
+        "polish": None if polished is None else {
+            "status": polished.status, "converged": bool(polished.converged), "iterations": polished.iterations,
+            "objective": polished.objective, "seconds": round(time.perf_counter() - polish_began, 3)},
+        "objective": solution.objective, "mean_abs_log_area": _area_error(positions, faces, targets.excess),
+        "seconds": round(time.perf_counter() - began, 3)})
+    solution.start = "authalic"
+    return AreaRoute(solution=solution, positions=positions, unfold_info=unfold_info, record=record)
+
+
+def _rejection(polished, connectivity, targets, authalic_error, authalic_objective):
+    """Why the polish's angles are not the answer before they are unfolded, or None."""
+    if not polished.success:
+        return "the polish failed (IPOPT %s)" % polished.status
+    if polished.objective > authalic_objective:
+        return "the polish did not lower objective (9)"
+    error = float(np.mean(np.abs(np.log(polished.excess / targets.excess))))
+    if error > authalic_error:
+        return "the polish raised the mean |log area ratio|"
+    return None
+
+
+def describe(record):
+    """One clause for the run's line: which map is the answer, how far the polish got, and both
+    maps' objective (9) and mean |log area ratio|."""
+    authalic, polish = record["authalic"], record["polish"]
+    first = "authalic map %.6g / %.3g" % (authalic["objective"], authalic["mean_abs_log_area"])
+    if record["answer"] == "polished":
+        how = ("IPOPT's optimum of (9)" if polish["converged"] else
+               "IPOPT's iterate at the end of the budget, projected (--max-time none runs it to its optimum)")
+        return ("polished to %s after %d iterations: objective (9) %.6g (%s)"
+                % (how, polish["iterations"], record["objective"], first))
+    return ("the authalic map, objective (9) %.6g: %s%s"
+            % (authalic["objective"], record["reason"],
+               "" if polish is None else " (polish: IPOPT %s after %d iterations, objective %.6g)"
+               % (polish["status"], polish["iterations"], polish["objective"])))

@@ -1,0 +1,165 @@
+"""The area modes' authalic stage (sphere_nlp.authalic) and its polish by the NLP (sphere_nlp.polish)."""
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from meshgen import ellipsoid, random_genus0_mesh, tentacle_creature
+from sphere_nlp import authalic, parameterize, polish
+from sphere_nlp.certify import certify
+from sphere_nlp.connectivity import build_connectivity
+from sphere_nlp.geometry import signed_solid_angles, triangle_areas
+from sphere_nlp.settings import SolverSettings
+from sphere_nlp.starts import angles_and_excess, starting_positions
+from sphere_nlp.targets import make_targets
+
+from conftest import MODELS
+
+
+def _problem(V, F, mode="original-areas"):
+    C = build_connectivity(F, len(V))
+    start, _ = starting_positions(C, V)
+    return C, start, make_targets(mode, V, F, C.vertex_degree)
+
+
+def _tangent(X, seed=0):
+    D = np.random.default_rng(seed).normal(size=X.shape)
+    return D - np.einsum("ij,ij->i", D, X)[:, None] * X
+
+
+def test_energy_gradient_matches_central_differences():
+    V, F = ellipsoid(2)
+    _, X, targets = _problem(V, F)
+    energy = authalic.AuthalicEnergy(F, targets.excess, len(V))
+    E, r = energy.value(X)
+    G = energy.gradient(X, r)
+    D = _tangent(X)
+    h = 1e-6
+    plus, minus = X + h * D, X - h * D
+    plus /= np.linalg.norm(plus, axis=1, keepdims=True)
+    minus /= np.linalg.norm(minus, axis=1, keepdims=True)
+    numeric = (energy.value(plus)[0] - energy.value(minus)[0]) / (2 * h)
+    assert np.isclose(numeric, np.sum(G * D), rtol=1e-6)
+    # The gradient is tangent: moving along the radii does not change the energy.
+    assert np.abs(np.einsum("ij,ij->i", G, X)).max() < 1e-12 * np.abs(G).max()
+
+
+def test_energy_is_zero_at_the_targets_and_infinite_for_a_flipped_map():
+    V, F = ellipsoid(2)
+    X = V / np.linalg.norm(V, axis=1, keepdims=True)
+    energy = authalic.AuthalicEnergy(F, signed_solid_angles(X, F), len(V))
+    assert energy.value(X)[0] < 1e-24
+    assert energy.value(X * np.array([-1.0, 1.0, 1.0]))[0] == math.inf     # mirrored: every triangle flipped
+
+
+def test_descent_lowers_the_energy_every_step_and_ends_bijective():
+    V, F = random_genus0_mesh(400, seed=3)
+    C, start, targets = _problem(V, F)
+    energy = authalic.AuthalicEnergy(F, targets.excess, len(V))
+    X, trace = authalic.authalic_descent(start, F, targets.excess, max_steps=300)
+    assert len(trace.energy) > 10
+    assert np.all(np.diff(trace.energy) <= 0)
+    assert trace.energy[-1] < 0.5 * energy.value(start)[0]
+    assert certify(X, F).valid
+
+
+def test_descent_reaches_areas_a_map_can_have():
+    """Targets that a map has (the spherical areas of the ellipsoid's radial projection): from the
+    conformal start, the descent gets every area within a fraction of a percent."""
+    V, F = ellipsoid(2)
+    X_true = V / np.linalg.norm(V, axis=1, keepdims=True)
+    start, _ = starting_positions(build_connectivity(F, len(V)), V)
+    X, trace = authalic.authalic_descent(start, F, signed_solid_angles(X_true, F), stall=1e-4)
+    assert certify(X, F).valid
+    assert trace.mean_abs_log_area[-1] < 1e-3 < authalic.mean_abs_log_area(start, F, signed_solid_angles(X_true, F))
+
+
+def test_stretch_energy_step_moves_area_to_a_limbed_meshes_tentacles():
+    """The conformal map shrinks the tentacles by orders of magnitude; SEM's global solves give them
+    area back (kept only once certified, which the stage's untangling provides)."""
+    V, F = tentacle_creature()
+    C, start, targets = _problem(V, F)
+    before = authalic.mean_abs_log_area(start, F, targets.excess)
+    stage = authalic.authalic_map(V, F, start, targets.excess, max_time=30)
+    assert certify(stage.positions, F).valid
+    assert stage.sem_mean_abs_log_area < 0.5 * before
+    assert stage.mean_abs_log_area <= min(stage.sem_mean_abs_log_area, before)
+
+
+def test_no_worse_band_keeps_each_triangle_no_further_from_its_target():
+    excess = np.array([0.5, 1.0, 3.0])
+    target = np.array([1.0, 1.0, 1.0])
+    lower, upper = polish.no_worse_band(excess, target, 0.0)
+    # The authalic excess is on the band's edge, its mirror image about the target on the other.
+    assert np.allclose(np.exp(lower), [0.5, 1.0, 1 / 3]) and np.allclose(np.exp(upper), [2.0, 1.0, 3.0])
+
+
+def test_route_answer_is_never_worse_than_the_authalic_map():
+    V, F = ellipsoid(3)
+    C, _, targets = _problem(V, F)
+    route = polish.authalic_route(C, V, targets, budget=60)
+    record = route.record
+    assert certify(route.positions, F).valid
+    assert record["mean_abs_log_area"] <= record["authalic"]["mean_abs_log_area"]
+    assert record["objective"] <= record["authalic"]["objective"]
+    # The answer's angles and excesses are those of its positions (both maps are placed maps).
+    angles, excess = angles_and_excess(route.positions, F)
+    assert np.abs(excess - route.solution.excess).max() < 1e-8
+
+
+def test_route_keeps_the_authalic_map_when_the_polish_would_raise_the_area_error():
+    """With a band wide enough to let (9)'s angle term trade area away, the polish ends at an area
+    error above the authalic map's: the rule hands back the authalic map, and says why."""
+    V, F = ellipsoid(2)
+    C, _, targets = _problem(V, F)
+    wide = SolverSettings(polish_slack=5.0)
+    route = polish.authalic_route(C, V, targets, budget=None, settings=wide)
+    record = route.record
+    assert record["answer"] == "authalic"
+    assert "raised the mean |log area ratio|" in record["reason"]
+    assert np.allclose(route.positions, route.positions / np.linalg.norm(route.positions, axis=1)[:, None])
+    assert record["mean_abs_log_area"] == pytest.approx(record["authalic"]["mean_abs_log_area"])
+    assert not route.solution.converged and route.solution.success
+
+
+def test_default_budget_grows_with_the_mesh_and_has_a_floor():
+    settings = SolverSettings()
+    assert polish.default_budget(100) == settings.area_mode_min_budget
+    assert polish.default_budget(100_000) == pytest.approx(100_000 * settings.area_mode_budget_per_vertex)
+
+
+def test_area_modes_default_to_the_route_with_its_budget():
+    result = parameterize(str(MODELS / "cylinder.off"), "equal-areas")
+    assert result.success and result.start == "authalic"
+    assert result.area_route["budget"] == polish.default_budget(len(result.vertices))
+    # equal-areas: the answer's areas are at least as even as the authalic map's.
+    assert result.area_route["mean_abs_log_area"] <= result.area_route["authalic"]["mean_abs_log_area"]
+
+
+def test_max_time_overrides_the_budget_and_inf_runs_the_polish_to_its_optimum():
+    path = str(MODELS / "cylinder.off")
+    limited = parameterize(path, "original-areas", max_time=4.0)
+    assert limited.success and limited.area_route["budget"] is None
+    assert limited.timings["total"] < 4.0 + 6.0             # the projection's grace at most
+    unlimited = parameterize(path, "original-areas", max_time=math.inf)
+    assert unlimited.area_route["budget"] is None
+    assert unlimited.area_route["polish"]["converged"]
+
+
+def test_start_conformal_keeps_the_nlp_route():
+    result = parameterize(str(MODELS / "cylinder.off"), "original-areas", start="conformal")
+    assert result.area_route is None and result.converged and result.start == "conformal"
+
+
+def test_cli_max_time_none_and_the_run_line_names_the_answer(tmp_path):
+    out = tmp_path / "c.sphere.off"
+    run = subprocess.run([sys.executable, "-m", "sphere_nlp", str(MODELS / "cylinder.off"), "--target",
+                          "original-areas", "--max-time", "none", "-o", str(out)],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    last = [line for line in run.stderr.splitlines() if line.startswith("wrote")][-1]
+    assert "authalic map" in last and "objective (9)" in last
+    assert out.is_file()
