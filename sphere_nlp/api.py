@@ -280,13 +280,15 @@ class SphericalParameterization:
         :meth:`distortion`)."""
         return usability_summary(_unit_size(self.input_vertices), self.vertices, self.faces, self.target_angles)
 
-    def write_png(self, path, measure=None, view=None):
+    def write_png(self, path, measure=None, view=None, up=None):
         """Write a PNG: the input mesh and the sphere coloured by distortion, and a checkerboarded mesh.
 
         ``measure`` is "area" (log area ratio) or "angle" (angle distortion, degrees); by default the
         one the mode does not optimise (angle distortion for the area modes, log area ratio for the
-        angle modes), which is where its map pays. ``view`` = (azimuth, elevation) in degrees, by
-        default the side of the mesh with the most projected area. See
+        angle modes), which is where its map pays. ``up`` is the input's up axis ("y", "-z", ... or
+        a vector), drawn up; by default detected (:func:`sphere_nlp.picture.detect_up`: a flat base,
+        else +Y). ``view`` = (azimuth, elevation) in degrees around the upright mesh, by default the
+        side with the most projected area. See
         :func:`sphere_nlp.picture.render_png`. Written atomically; refuses uncertified results like
         :meth:`write`.
         """
@@ -301,7 +303,7 @@ class SphericalParameterization:
                     summary["mean_abs_log_area"]))
         return render_png(path, _unit_size(self.input_vertices), self.vertices, self.faces,
                           measure=measure or default_measure(self.target), title=title, view=view,
-                          corner_uv=self.texture_coordinates())
+                          corner_uv=self.texture_coordinates(), up=up)
 
     def save_solution(self, path):
         """Write vertices, faces, angles, excess, the targets and the vertex map to an .npz archive."""

@@ -62,6 +62,8 @@ def build_parser():
     out.add_argument("--view", metavar="AZ,EL", type=_view,
                      help="camera azimuth and elevation of the picture, degrees (default: the side "
                           "with the most projected area)")
+    out.add_argument("--up", choices=("x", "y", "z", "+x", "+y", "+z", "-x", "-y", "-z"), metavar="AXIS",
+                     help="the input's up axis in the picture: x, y, z, or --up=-z (default: detected)")
     out.add_argument("--textured-input", metavar="OUT.obj",
                      help="the input mesh with the sphere's texture coordinates, to paint or texture")
     out.add_argument("--texture", metavar="NAME.png",
@@ -402,7 +404,7 @@ def run(args, progress):
             result.save_solution(args.save_solution)
         if args.png:
             progress.stage("write (picture)")
-            result.write_png(args.png, measure=args.png_measure, view=args.view)
+            result.write_png(args.png, measure=args.png_measure, view=args.view, up=args.up)
         if args.report:
             result.write_report(args.report)
         _write_hook("staged")

@@ -11,15 +11,22 @@ needed):
 
 Choices that make the picture say something:
 
-* **View.** Unless one is given, the camera looks from the direction in which the mesh shows the most
-  projected area (:func:`best_view`), so a model is seen from its broad side, not end-on.
-* **Colour range.** The 2nd to 98th percentile of the measure, weighted by surface area (what the
-  eye sees); the share of the surface beyond it is stated under the colour bar, so a few extreme
-  slivers cannot wash the picture out. The log area ratio keeps white at 0 (a triangle keeping its
-  share of the surface) with each side of the scale stretched to its own percentile, so a mesh whose
-  ears shrink e^-14 still shows the body's ±0.5.
-* **Checkerboard.** Each triangle is cut exactly along the checker lines in its (u, v) (linear in the
-  triangle, as a viewer's texture lookup is), so square edges are straight, not staircases.
+* **Upright.** Meshes come Y-up (most graphics meshes: Stanford scans, OBJ exports) or Z-up (CAD,
+  scans of busts, medical data), and the picture draws the mesh's up axis up. Unless given
+  (``up="y"``, ``"-z"``, a vector), :func:`detect_up` finds it: the axis pointing away from a flat
+  base (a bust's cut, a pedestal, a cylinder's cap) when there is one, else +Y.
+* **View.** Unless one is given, the camera looks from the direction, level or from above, in which
+  the upright mesh shows the most projected area (:func:`best_view`), so a model is seen from its
+  broad side, not end-on.
+* **Colour scale.** One linear scale with labelled ticks: symmetric about 0 for the signed log area
+  ratio (white = a triangle keeping its share of the surface), from 0 for the angle distortion. It
+  reaches the larger side of the 2nd..98th area-weighted percentiles, rounded up to a tick
+  (:func:`colour_range`); the share of the surface beyond it is stated under the colour bar, so a few
+  extreme slivers cannot wash the picture out.
+* **Checkerboard.** The colours of the texture written beside OBJ files
+  (:data:`sphere_nlp.texture.CHECKER_COLOURS`), so the picture shows what a viewer shows. Each
+  triangle is cut exactly along the checker lines in its (u, v) (linear in the triangle, as a
+  viewer's texture lookup is), so square edges are straight, not staircases.
 
 Triangles are drawn flat with Lambert shading; those facing away from the camera are culled and the
 rest depth-sorted by mplot3d (painter's algorithm), exact for the sphere and good for most meshes.
@@ -28,16 +35,21 @@ rest depth-sorted by mplot3d (painter's algorithm), exact for the sphere and goo
 import numpy as np
 
 from .mesh_io import atomic_output
+from .texture import CHECKER_COLOURS as TEXTURE_CHECKER_COLOURS
 
 # The camera (degrees) when a view is neither given nor chosen: a little from above, as in Fig. 3.
 VIEW_ELEVATION, VIEW_AZIMUTH = 20.0, -60.0
 CHECKER_SQUARES = (16, 8)            # along longitude, along latitude: 22.5-degree squares
-CHECKER_COLOURS = np.array([[0.95, 0.93, 0.88], [0.85, 0.25, 0.15]])
+CHECKER_COLOURS = np.asarray(TEXTURE_CHECKER_COLOURS, float) / 255     # those of the written texture
 MEASURES = {
     "area": ("log(sphere area / mesh area)", "RdBu_r"),
     "angle": ("angle distortion (degrees)", "viridis"),
 }
 COLOUR_PERCENTILES = (2.0, 98.0)     # area-weighted; the rest is clipped and its share stated
+UP_AXES = ("+x", "+y", "+z", "-x", "-y", "-z")     # detect_up's answers, in its order of preference
+FLAT_BASE_SHARE = 0.02               # a flat base holds at least this share of the surface ...
+FLAT_BASE_BAND = 0.005               # ... within this fraction of the mesh's size of its lowest point
+FLAT_BASE_COS = np.cos(np.radians(5.0))      # ... facing within 5 degrees of straight down
 
 
 def triangle_measure(mesh_vertices, sphere_vertices, faces, measure="area"):
@@ -89,6 +101,95 @@ def align_sphere_to_mesh(mesh_vertices, sphere_vertices):
     u, _, vt = np.linalg.svd(directions.T @ sphere_vertices)
     d = np.sign(np.linalg.det(u @ vt))
     return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def up_vector(up):
+    """The unit vector of an up axis: ``"x"``, ``"+y"``, ``"-z"``, ... or any nonzero 3-vector.
+
+    >>> up_vector("y").tolist(), up_vector("-z").tolist()
+    ([0.0, 1.0, 0.0], [0.0, 0.0, -1.0])
+    """
+    if isinstance(up, str):
+        text = up.strip().lower()
+        sign, axis = (-1.0 if text[:1] == "-" else 1.0), text.lstrip("+-")
+        if axis not in ("x", "y", "z") or len(text) - len(axis) > 1:
+            raise ValueError("up must be x, y, z, -x, -y, -z or a vector, got %r" % up)
+        vector = np.zeros(3)
+        vector["xyz".index(axis)] = sign
+        return vector
+    vector = np.asarray(up, float).reshape(-1)
+    if vector.shape != (3,) or not np.isfinite(vector).all() or np.linalg.norm(vector) == 0:
+        raise ValueError("up must be x, y, z, -x, -y, -z or a nonzero 3-vector, got %r" % (up,))
+    return vector / np.linalg.norm(vector)
+
+
+def flat_base_shares(vertices, faces):
+    """Per direction of :data:`UP_AXES`: the share of the surface lying flat at the mesh's bottom if
+    that direction were up, (6,).
+
+    A triangle counts when its centre is within 0.5% of the mesh's size of the lowest point and it
+    faces within 5 degrees of straight down (normals judged outward by the enclosed volume): a plane
+    cut, not the gently curved side of a long smooth shape.
+    """
+    vertices, faces = np.asarray(vertices, float), np.asarray(faces, np.int64)
+    triangles = vertices[faces]
+    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    areas = np.linalg.norm(normals, axis=1) / 2
+    normals /= np.maximum(2 * areas, 1e-300)[:, None]
+    centres = triangles.mean(axis=1)
+    if np.einsum("ij,ij,i->", centres - vertices.mean(axis=0), normals, areas) < 0:
+        normals = -normals                                # wound inward
+    size = max(np.ptp(vertices, axis=0).max(), 1e-300)
+    shares = []
+    for axis in UP_AXES:
+        up = up_vector(axis)
+        base = ((centres @ up < (vertices @ up).min() + FLAT_BASE_BAND * size)
+                & (normals @ up < -FLAT_BASE_COS))
+        shares.append(areas[base].sum() / max(areas.sum(), 1e-300))
+    return np.array(shares)
+
+
+def detect_up(vertices, faces):
+    """The mesh's up axis, one of :data:`UP_AXES`.
+
+    A mesh with a flat base (a bust's cut, a pedestal, a cylinder's cap: at least 2% of the surface
+    flat at the bottom, :func:`flat_base_shares`) stands on it; of several within 10% of the largest,
+    the first in :data:`UP_AXES` (+Y before +Z, + before -). Without one, +Y: the convention of most
+    graphics meshes (the Stanford bunny and armadillo, spot, meshes exported as OBJ), whose feet,
+    paws and hooves are rarely flat. Z-up meshes without a flat base (FreeSurfer's cortical surfaces,
+    in RAS coordinates) need ``up="z"``.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import cylinder, icosphere
+    >>> detect_up(*cylinder())                    # flat caps at -z and +z
+    '+z'
+    >>> V, F = icosphere(3)
+    >>> detect_up(V * [1, 2, 1], F)                # no flat base: the Y-up convention
+    '+y'
+    """
+    shares = flat_base_shares(vertices, faces)
+    if shares.max() < FLAT_BASE_SHARE:
+        return "+y"
+    return UP_AXES[int(np.flatnonzero(shares >= 0.9 * shares.max())[0])]
+
+
+def upright_rotation(up):
+    """The rotation R (3, 3) turning ``up`` to +Z by the smallest angle (Rodrigues): for +Y up, the
+    mesh's front (+Z, the graphics convention) then faces -Y, the default camera's side.
+
+    >>> R = upright_rotation("y")
+    >>> (R @ [0, 1, 0]).round(12).tolist(), (R @ [0, 0, 1]).round(12).tolist()
+    ([0.0, 0.0, 1.0], [0.0, -1.0, 0.0])
+    """
+    u = up_vector(up)
+    axis = np.cross(u, [0.0, 0.0, 1.0])
+    sine, cosine = np.linalg.norm(axis), u[2]
+    if sine < 1e-12:
+        return np.eye(3) if cosine > 0 else np.diag([1.0, -1.0, -1.0])    # half-turn about X
+    k = axis / sine
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + sine * K + (1 - cosine) * K @ K
 
 
 def _normalised(points):
@@ -161,11 +262,11 @@ def _draw(ax, triangles, colours, view, edges=False, pieces=None):
 
 
 def best_view(vertices, faces, step=15.0):
-    """(azimuth, elevation) in degrees from which the mesh shows the most projected area.
+    """(azimuth, elevation) in degrees from which the mesh (Z up) shows the most projected area.
 
-    Scores every direction of a 15-degree grid (elevations -75..75) by the area of the front-facing
-    triangles projected onto the image plane (for a convex shape, its silhouette's area), and
-    prefers, by up to 3%, views near the default (from a little above).
+    Scores every direction of a 15-degree grid, level to 60 degrees above, by the area of the
+    front-facing triangles projected onto the image plane (for a convex shape, its silhouette's
+    area), and prefers, by up to 3%, views near the default (from a little above, front left).
 
     Examples
     --------
@@ -179,7 +280,7 @@ def best_view(vertices, faces, step=15.0):
     area_vectors = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]) / 2
     if np.einsum("ij,ij->i", triangles[:, 0] - vertices.mean(axis=0), area_vectors).sum() < 0:
         area_vectors = -area_vectors                      # wound inward: outward normals all the same
-    elevations = np.arange(-75.0, 75.0 + 1e-9, step)
+    elevations = np.arange(0.0, 60.0 + 1e-9, step)
     azimuths = np.arange(-180.0, 180.0, step)
     views = np.array([(el, az) for el in elevations for az in azimuths])
     directions = np.array([camera_direction(el, az) for el, az in views])       # (k, 3)
@@ -210,35 +311,53 @@ def weighted_percentile(values, weights, q):
     return float(values[min(index, len(values) - 1)])
 
 
-def colour_range(values, weights, measure):
-    """(low, high, clipped share): the weighted 2nd..98th percentile range of a measure, and the share
-    of the weight beyond it.
+def tick_step(extent, per_side=3):
+    """The smallest round step (1, 2, 2.5 or 5 times a power of ten) dividing ``extent`` into at
+    most ``per_side`` steps.
 
-    For the signed log area ratio the range contains 0 with each side at least a tenth of the other
-    (drawn with white at 0); the angle distortion's starts at 0.
+    >>> tick_step(0.47), tick_step(14.0), tick_step(3.0)
+    (0.2, 5.0, 1.0)
+    """
+    raw = max(float(extent), 1e-12) / per_side
+    power = 10.0 ** np.floor(np.log10(raw))
+    step = next(m * power for m in (1, 2, 2.5, 5, 10) if m * power >= raw * (1 - 1e-9))
+    return float(np.round(step, 12))
+
+
+def colour_range(values, weights, measure):
+    """(low, high, ticks, clipped share): one linear colour scale for a measure.
+
+    The scale reaches the larger side of the weighted 2nd..98th percentile range, rounded up to a
+    round tick step (:func:`tick_step`); it is symmetric about 0 for the signed log area ratio (so
+    equal colours mean equal factors of growth and shrinkage) and starts at 0 for the angle
+    distortion. ``ticks`` are evenly spaced, 0 among them; the share is that of the weight beyond
+    the scale.
 
     Examples
     --------
     >>> v = np.r_[np.linspace(-1, 1, 98), 50.0, -50.0]
-    >>> low, high, share = colour_range(v, np.ones(100), "area")
-    >>> round(low, 2), round(high, 2), share
-    (-1.0, 0.98, 0.03)
-    >>> colour_range(np.r_[np.zeros(50), np.full(50, 4.0)], np.ones(100), "area")[:2]
-    (-0.4, 4.0)
+    >>> low, high, ticks, share = colour_range(v, np.ones(100), "area")
+    >>> low, high, ticks, share
+    (-1.0, 1.0, [-1.0, -0.5, 0.0, 0.5, 1.0], 0.02)
+    >>> colour_range(np.r_[np.zeros(50), np.full(50, 4.0)], np.ones(100), "angle")[:3]
+    (0.0, 4.0, [0.0, 2.0, 4.0])
     """
     values, weights = np.asarray(values, float), np.asarray(weights, float)
     finite = np.isfinite(values)
-    if not finite.any():
-        return (-1.0, 1.0, 0.0) if measure == "area" else (0.0, 1.0, 0.0)
-    values, weights = values[finite], weights[finite]
-    low_q, high_q = (weighted_percentile(values, weights, q) for q in COLOUR_PERCENTILES)
-    if measure == "area":
-        low, high = min(low_q, 0.0), max(high_q, 0.0)
-        low, high = min(low, -0.1 * high, -1e-3), max(high, -0.1 * low, 1e-3)
+    if finite.any():
+        values, weights = values[finite], weights[finite]
+        quantiles = [weighted_percentile(values, weights, q) for q in COLOUR_PERCENTILES]
     else:
-        low, high = 0.0, max(high_q, 1e-3)
-    beyond = weights[(values < low) | (values > high)].sum()
-    return low, high, float(beyond / max(weights.sum(), 1e-300))
+        quantiles = [0.0, 0.0]
+    reach = max(abs(quantiles[0]) if measure == "area" else 0.0, quantiles[1], 1e-3)
+    step = tick_step(reach)
+    steps = int(np.ceil(reach / step - 1e-9))
+    high = float(np.round(steps * step, 12))
+    low = -high if measure == "area" else 0.0
+    ticks = [float(np.round(k * step, 12)) for k in range(-steps if measure == "area" else 0, steps + 1)]
+    ticks = [0.0 if t == 0 else t for t in ticks]
+    beyond = weights[(values < low) | (values > high)].sum() if finite.any() else 0.0
+    return low, high, ticks, float(beyond / max(weights.sum(), 1e-300))
 
 
 def _split(polygon, axis, cut):
@@ -310,7 +429,7 @@ def default_measure(target):
 
 
 def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", title=None,
-               view=None, corner_uv=None, dpi=100):
+               view=None, corner_uv=None, dpi=100, up=None):
     """Write a PNG of the map: mesh and sphere coloured by distortion, and a checkerboarded mesh.
 
     Written atomically (a temporary file beside ``path``, renamed into place).
@@ -328,17 +447,22 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
     title : str, optional
         A line above the panels.
     view : (azimuth, elevation) in degrees, optional
-        The camera; by default :func:`best_view` of the mesh.
+        The camera, around the upright mesh (elevation 90 looks down on it); by default
+        :func:`best_view` of the upright mesh.
     corner_uv : (t, 3, 2) float array, optional
         Texture coordinates of the checkerboard; by default
         :func:`sphere_nlp.texture.spherical_uv` of the sphere, as in the OBJ.
     dpi : int
+    up : str or (3,) array, optional
+        The mesh's up axis, drawn up: ``"y"``, ``"-z"``, ... or a vector (:func:`up_vector`); by
+        default :func:`detect_up`.
 
     Returns
     -------
     dict
-        ``colour_limits``, ``clipped_share`` (of the surface beyond them), ``view``, the number of
-        polygons drawn per panel (``drawn``) and ``checker_pieces``.
+        ``colour_limits``, ``colour_ticks``, ``clipped_share`` (of the surface beyond the limits),
+        ``up`` (as given or detected), ``view``, the number of polygons drawn per panel (``drawn``)
+        and ``checker_pieces``.
 
     Examples
     --------
@@ -353,7 +477,7 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize, TwoSlopeNorm
+    from matplotlib.colors import Normalize
     from matplotlib.figure import Figure
 
     from .metrics import normalised_areas_3d
@@ -366,14 +490,18 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
         raise ValueError("measure must be one of %s, got %r" % (", ".join(MEASURES), measure))
     label, colour_map_name = MEASURES[measure]
     values = triangle_measure(mesh_vertices, sphere_vertices, faces, measure)
-    low, high, clipped = colour_range(values, normalised_areas_3d(mesh_vertices, faces), measure)
-    norm = TwoSlopeNorm(0.0, low, high) if measure == "area" else Normalize(low, high)
+    low, high, ticks, clipped = colour_range(values, normalised_areas_3d(mesh_vertices, faces), measure)
+    norm = Normalize(low, high)
     colour_map = matplotlib.colormaps[colour_map_name]
     colours = colour_map(norm(np.nan_to_num(values, nan=0.0)))
 
-    view = tuple(float(a) for a in view) if view is not None else best_view(mesh_vertices, faces)
-    mesh = _normalised(mesh_vertices)
-    sphere = sphere_vertices @ align_sphere_to_mesh(mesh_vertices, sphere_vertices).T
+    detected = up is None
+    up = detect_up(mesh_vertices, faces) if detected else up
+    up_text = up if isinstance(up, str) else "(%.2g, %.2g, %.2g)" % tuple(up_vector(up))
+    upright = upright_rotation(up)
+    mesh = _normalised(mesh_vertices @ upright.T)
+    view = tuple(float(a) for a in view) if view is not None else best_view(mesh, faces)
+    sphere = sphere_vertices @ (upright @ align_sphere_to_mesh(mesh_vertices, sphere_vertices)).T
     edges = len(faces) <= 2000
     if corner_uv is None:
         corner_uv = spherical_uv(sphere_vertices, faces)
@@ -395,14 +523,14 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
     bar_axes = fig.add_axes((0.12, 0.085, 0.42, 0.025))
     bar = fig.colorbar(ScalarMappable(norm=norm, cmap=colour_map), cax=bar_axes, orientation="horizontal",
                        extend="both" if measure == "area" else "max")
-    if measure == "area":       # ticks on both sides of 0, however unequal the two sides are
-        bar.set_ticks(np.r_[np.linspace(low, 0, 4)[:-1], 0.0, np.linspace(0, high, 4)[1:]])
-        bar.ax.xaxis.set_major_formatter("{x:.2g}")
+    bar.set_ticks(ticks)
+    bar.ax.xaxis.set_major_formatter("{x:g}")
     bar.set_label("%s; %.1f%% of the surface beyond the range" % (label, 100 * clipped), fontsize=11)
-    fig.text(0.56, 0.085, "view: azimuth %g°, elevation %g°" % view, fontsize=10)
+    fig.text(0.56, 0.085, "up: %s%s; view: azimuth %g°, elevation %g°"
+             % ((up_text, " (detected)" if detected else "") + view), fontsize=10)
     if title:
         fig.text(0.5, 0.95, title, ha="center", fontsize=13)
     with atomic_output(path, "wb") as out:
         fig.savefig(out, format="png")
-    return {"colour_limits": (float(norm.vmin), float(norm.vmax)), "clipped_share": clipped,
-            "view": view, "drawn": drawn, "checker_pieces": len(polygons)}
+    return {"colour_limits": (low, high), "colour_ticks": ticks, "clipped_share": clipped,
+            "up": up_text, "view": view, "drawn": drawn, "checker_pieces": len(polygons)}

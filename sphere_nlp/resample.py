@@ -420,23 +420,30 @@ def _check_landmarks(landmarks, A, B):
         raise errors.UsageError("--landmarks: a vertex index is out of range")
 
 
-def write_strip(path, frames, faces, count=6, view=None):
-    """A row of ``count`` frames (evenly chosen), shaded, as a PNG written atomically."""
+def write_strip(path, frames, faces, count=6, view=None, up=None):
+    """A row of ``count`` frames (evenly chosen), shaded and upright, as a PNG written atomically
+    (1440 x 440 pixels for six frames).
+
+    ``up`` is the frames' up axis ("y", "-z", ... or a vector), by default that of the first frame
+    (:func:`sphere_nlp.picture.detect_up`); ``view`` = (elevation, azimuth) in degrees.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from .mesh_io import atomic_output
+    from .picture import detect_up, upright_rotation
 
+    upright = upright_rotation(detect_up(frames[0], faces) if up is None else up)
     pick = np.unique(np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int))
-    fig = plt.figure(figsize=(2.2 * len(pick), 2.4), dpi=80)
+    fig = plt.figure(figsize=(2.4 * len(pick), 4.4), dpi=100)
     for k, i in enumerate(pick):
         ax = fig.add_subplot(1, len(pick), k + 1, projection="3d")
-        draw_mesh(ax, frames[i], faces)
+        draw_mesh(ax, np.asarray(frames[i], float) @ upright.T, faces)
         if view is not None:
             ax.view_init(*view)
-        ax.set_title("frame %d" % i, fontsize=8)
+        ax.set_title("frame %d" % i, fontsize=11)
     fig.tight_layout()
     with atomic_output(path, "wb") as handle:
         fig.savefig(handle, format="png")
@@ -459,5 +466,5 @@ def draw_mesh(ax, V, F, colours=None):
     ax.set_xlim(c[0] - r, c[0] + r)
     ax.set_ylim(c[1] - r, c[1] + r)
     ax.set_zlim(c[2] - r, c[2] + r)
-    ax.set_box_aspect((1, 1, 1))
+    ax.set_box_aspect((1, 1, 1), zoom=1.3)      # the mesh, not the empty box around it, fills the panel
     ax.set_axis_off()

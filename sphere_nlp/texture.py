@@ -185,7 +185,9 @@ def checker(corner_uv, squares=(16, 8)):
     return (i + j) % 2
 
 
-CHECKER_COLOURS = ((238, 238, 238), (44, 96, 168))   # light grey and blue, RGB
+# Light and dark grey, RGB: neutral, so the checkerboard is not mistaken for a distortion colour
+# (the pictures draw it with these too, sphere_nlp.picture).
+CHECKER_COLOURS = ((238, 238, 238), (80, 80, 88))
 
 
 def checker_image(squares=(16, 8), pixels_per_square=64):

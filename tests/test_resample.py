@@ -147,6 +147,10 @@ def test_cli_resample_and_morph(tmp_path):
                  "--frames", "3", "--out", str(tmp_path / "m"), "-q"]) == 0
     assert sorted(p.name for p in (tmp_path / "m").iterdir()) == [
         "frame_000.obj", "frame_001.obj", "frame_002.obj", "strip.png"]
+    from PIL import Image
+
+    width, height = Image.open(tmp_path / "m" / "strip.png").size
+    assert height >= 400 and width >= 3 * 200                   # readable: 240 x 440 pixels a frame
 
 
 def test_cli_bad_usage_exits_2_before_work(tmp_path, capsys):

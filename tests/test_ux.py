@@ -196,14 +196,25 @@ def test_png_is_a_real_picture(cylinder_result, tmp_path, measure):
     assert data[:8] == PNG_SIGNATURE and len(data) > 50_000
     colours = png_colours(out)
     assert len(colours) > 500                   # shading, a colour scale and a checkerboard, not a blank
-    # The checkerboard's red is there, and the colour scale's ends (blue and red for the area measure).
-    assert ((colours[:, 0] > 150) & (colours[:, 1] < 90) & (colours[:, 2] < 70)).any()
+    # The colour scale's ends (blue and red for the area measure).
     if measure == "area":
         assert ((colours[:, 2] > 100) & (colours[:, 0] < 60)).any()
+        assert ((colours[:, 0] > 150) & (colours[:, 1] < 90) & (colours[:, 2] < 70)).any()
+    # The checkerboard panel (right third) is drawn in the texture's two greys, shaded: light and
+    # dark neutral pixels, in the proportions of the texture's colours.
+    import matplotlib.image
+    from sphere_nlp.texture import CHECKER_COLOURS
+
+    pixels = matplotlib.image.imread(str(out))[:, 2 * 1500 // 3:, :3] * 255
+    neutral = np.ptp(pixels, axis=2) < 12
+    dark_ratio = CHECKER_COLOURS[1][0] / CHECKER_COLOURS[0][0]
+    brightness = pixels.max(axis=2)
+    assert (neutral & (brightness > 150) & (brightness < 250)).sum() > 5000
+    assert (neutral & (brightness < 250 * dark_ratio * 1.05) & (brightness > 20)).sum() > 5000
     assert [p.name for p in tmp_path.iterdir()] == ["map.png"]        # no temporary file left
 
 
-def test_png_colour_limits_follow_the_distortion(cylinder_result, tmp_path):
+def test_png_colour_scale_is_one_linear_scale_symmetric_about_zero(cylinder_result, tmp_path):
     from sphere_nlp.metrics import area_log_ratio, normalised_areas_3d
     from sphere_nlp.picture import render_png, weighted_percentile
 
@@ -211,12 +222,87 @@ def test_png_colour_limits_follow_the_distortion(cylinder_result, tmp_path):
     info = render_png(tmp_path / "a.png", V, cylinder_result.vertices, F)
     log_area, weight = area_log_ratio(V, cylinder_result.vertices, F), normalised_areas_3d(V, F)
     low, high = info["colour_limits"]
-    assert low < 0 < high
-    assert (low, high) == (weighted_percentile(log_area, weight, 2), weighted_percentile(log_area, weight, 98))
+    ticks = np.array(info["colour_ticks"])
+    # Symmetric, ticks evenly spaced from end to end with 0 among them.
+    assert low == -high < 0 and ticks[0] == low and ticks[-1] == high and 0.0 in ticks
+    assert np.allclose(np.diff(ticks), ticks[1] - ticks[0]) and 5 <= len(ticks) <= 7
+    np.testing.assert_allclose(ticks, -ticks[::-1])
+    # It reaches the larger side of the 2nd..98th percentiles, within one tick step.
+    reach = max(-weighted_percentile(log_area, weight, 2), weighted_percentile(log_area, weight, 98))
+    assert reach <= high < reach + (ticks[1] - ticks[0])
     beyond = (log_area < low) | (log_area > high)
     assert info["clipped_share"] == pytest.approx(weight[beyond].sum() / weight.sum()) and info["clipped_share"] < 0.05
     assert info["drawn"][1] < len(F)                          # the back of the sphere is culled
     assert info["checker_pieces"] > len(F)                    # triangles cut at the checker lines
+
+
+@pytest.mark.parametrize("reach", [3e-4, 0.047, 0.47, 1.0, 2.3, 14.0, 1234.0])
+def test_colour_scale_ticks_are_round_even_and_cover_the_range(reach):
+    from sphere_nlp.picture import colour_range
+
+    values = np.linspace(-reach / 3, reach, 500)
+    for measure in ("area", "angle"):
+        low, high, ticks, share = colour_range(values if measure == "area" else np.abs(values),
+                                               np.ones(500), measure)
+        step = ticks[1] - ticks[0]
+        assert np.allclose(np.diff(ticks), step) and ticks[0] == low and ticks[-1] == high
+        assert (low == -high) if measure == "area" else (low == 0)
+        mantissa = step / 10 ** np.floor(np.log10(step))
+        assert any(np.isclose(mantissa, m) for m in (1, 2, 2.5, 5))      # labels read as round numbers
+        assert max(reach, 1e-3) * 0.98 <= high < max(reach, 1e-3) + step
+        assert round(high / step) in (2, 3)                   # two or three labelled steps from 0 to each end
+
+
+def y_up_figure(base=True):
+    """A tall ellipsoid along +Y (height 4, width 1), cut flat near the bottom when ``base``: a
+    figure standing on a pedestal, modelled Y-up."""
+    V, F = icosphere(3)
+    V = V * [0.5, 2.0, 0.5]
+    if base:
+        V[:, 1] = np.maximum(V[:, 1], -1.2)
+    return V, F
+
+
+def test_detect_up_stands_a_mesh_on_its_flat_base_whichever_axis_that_is():
+    from sphere_nlp.picture import UP_AXES, detect_up, up_vector, upright_rotation
+
+    V, F = y_up_figure()
+    assert detect_up(V, F) == "+y"
+    # The same figure turned so that its up is each of the six axes (and a random rotation about it).
+    for axis in UP_AXES:
+        R = upright_rotation(axis).T                         # takes +Z to the axis ...
+        Q = upright_rotation("y")                            # ... after taking +Y to +Z
+        W = V @ (R @ Q).T
+        assert np.allclose(W @ up_vector(axis), V[:, 1])
+        assert detect_up(W, F) == axis
+    # Without a flat base the Y-up convention holds, even when another axis is the longest.
+    W, F = y_up_figure(base=False)
+    assert detect_up(W[:, [1, 0, 2]], F) == "+y" and detect_up(W, F) == "+y"
+
+
+def test_detect_up_on_real_meshes_modelled_y_up_and_z_up():
+    from conftest import shared_mesh
+    from sphere_nlp.picture import detect_up
+
+    expected = {"bunny.off": "+y", "knight.off": "+y", "penguin.obj": "+y", "spot.obj": "+y",
+                "hand_closed.obj": "+y", "cheburashka.off": "+y", "nefertiti.obj": "+z"}
+    found = {name: detect_up(*sphere_nlp.load_mesh(shared_mesh(name))) for name in expected}
+    assert found == expected
+
+
+def test_picture_draws_the_up_axis_up(tmp_path):
+    from matplotlib.image import imread
+    from sphere_nlp.picture import render_png
+
+    V, F = y_up_figure()
+    S = V / np.linalg.norm(V, axis=1, keepdims=True)         # a valid map of a star-shaped mesh
+    heights = {}
+    for up in (None, "x"):
+        info = render_png(tmp_path / "p.png", V, S, F, up=up, view=(0.0, 0.0))
+        panel = imread(str(tmp_path / "p.png"))[:int(0.8 * 560), :500, :3]   # the first panel
+        rows, columns = np.nonzero((panel < 0.97).any(axis=2))
+        heights[info["up"]] = np.ptp(rows) / np.ptp(columns)
+    assert heights["+y"] > 2.5 and heights["x"] < 0.5         # drawn standing, or lying when told so
 
 
 def test_checker_pieces_are_exact_cuts_at_the_checker_lines():
@@ -250,10 +336,14 @@ def test_checker_pieces_are_exact_cuts_at_the_checker_lines():
 def test_picture_shows_what_the_mode_trades_away_by_default(cylinder_result, tmp_path, target, measure):
     from sphere_nlp.picture import best_view
 
+    from sphere_nlp.picture import _normalised, upright_rotation
+
     result = dataclasses.replace(cylinder_result, target=target)
     info = result.write_png(tmp_path / "p.png")
     assert (info["colour_limits"][0] < 0) == (measure == "area")     # the angle scale starts at 0
-    assert info["view"] == best_view(result.input_vertices, result.faces)
+    assert info["up"] == "+z"                                           # the cylinder's caps
+    upright = _normalised(result.input_vertices @ upright_rotation("+z").T)
+    assert info["view"] == best_view(upright, result.faces)
 
 
 def test_checkerboard_panel_draws_pieces_of_mixed_corner_counts_within_the_box():
