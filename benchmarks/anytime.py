@@ -47,7 +47,9 @@ def trace(mesh, mode, every=10):
         nlps.append(nlp)
         kept.append((time.perf_counter() - clock, stage, run.iterations, np.array(run.x, float)))
 
-    result = parameterize(mesh, mode, settings=SolverSettings(on_iterate=on_iterate, on_run=on_run))
+    # The NLP alone (start "conformal"), not the area modes' authalic route with its budgeted polish.
+    result = parameterize(mesh, mode, start="conformal",
+                          settings=SolverSettings(on_iterate=on_iterate, on_run=on_run))
     total = time.perf_counter() - clock
     values = nlps[-1]._numeric
     t = len(result.target_excess)

@@ -71,8 +71,9 @@ if isinstance(mesh, str) and mesh.startswith(("loop:", "loop-from-coarse:")):
     if mesh.startswith("loop-from-coarse:"):
         # The hierarchy: solve the mesh itself, then start its subdivision from that solution.
         from sphere_nlp.hierarchy import prolong_to_subdivision
+        # The NLP's own hierarchy: the coarse solve is the NLP alone (start "conformal").
         coarse = sphere_nlp.parameterize((m.vertices, m.faces), target=spec["mode"],
-                                         formulation=spec["formulation"], check=True,
+                                         formulation=spec["formulation"], check=True, start="conformal",
                                          **limits,
                                          progress=lambda stage, *a: progress("coarse " + stage, *a))
         coarse_positions = coarse.vertices[coarse.vertex_map]
@@ -235,6 +236,15 @@ def status_text(row):
     """The status cell; a capped case also says where it was (stage, iteration, objective, violation);
     a solve stopped by its per-stage time limit and projected onto the constraints says so (and so
     does the coarse solve of a hierarchy row)."""
+    route = row.get("area_route")
+    if route:
+        # The area modes' authalic route (sphere_nlp.polish): which map is the answer, and the polish's end.
+        polish = route.get("polish") or {}
+        budget = "%g-s budget" % route["budget"] if route.get("budget") else "no budget"
+        if route["answer"] == "polished":
+            end = "optimum" if polish.get("converged") else "budget's end, projected"
+            return "authalic + polish (%s, polished to IPOPT's %s)" % (budget, end)
+        return "authalic map (%s; %s)" % (budget, route.get("reason"))
     status = row.get("status", "")
     stopped = []
     if row.get("coarse") and row["coarse"].get("converged") is False:

@@ -9,7 +9,8 @@ corners, then log e for the t triangles), so a later stage can be studied from a
 ``--checkpoint-every K`` it also saves the current iterate every K iterations to OUT/checkpoint.npz
 (``x``, ``lam_g``, ``lam_x``, ``run``, ``iteration``, ``objective``), so that a run stopped before its end
 (a time limit, a cap) still leaves its last point behind. ``finish_trace.py`` turns the last run into a certified sphere and a
-``compare.json`` row.
+``compare.json`` row. The area modes are traced as the NLP alone (start "conformal"), without
+their authalic route (:mod:`sphere_nlp.polish`), whose polish is budgeted.
 """
 
 import argparse
@@ -54,7 +55,7 @@ def main(argv=None):
         print("%8.1f s  %-22s it %4d  objective %.10g  violation %.2e"
               % (time.perf_counter() - start, stage, iteration, objective, violation), flush=True)
 
-    result = parameterize(args.mesh, args.mode, progress=progress, max_time=args.max_time,
+    result = parameterize(args.mesh, args.mode, progress=progress, max_time=args.max_time, start="conformal",
                           ipopt_options={"output_file": str(out / "ipopt.log"), "file_print_level": 5},
                           settings=SolverSettings(on_run=save_run, on_iterate=on_iterate))
     print(result)

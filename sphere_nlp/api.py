@@ -665,13 +665,18 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         # Certified here, before the solve is announced, so a wrong start gets only its error.
         start = checked_positions(connectivity, _start_in_repaired_numbering(start, prepared))
     area_route = None
-    if start == "authalic" or (start is None and targets.area_weight > 0 and formulation == "log-chord"):
+    # The area modes' default route, unless a corner floor is asked for: the authalic map keeps no
+    # floors, so the NLP alone must.
+    used = settings or DEFAULT_SETTINGS
+    floors = corner_floor if corner_floor is not None else max(used.area_mode_corner_floor,
+                                                               used.area_mode_small_corner_floor)
+    if (isinstance(start, str) and start == "authalic") or (start is None and targets.area_weight > 0
+                                                            and formulation == "log-chord" and not floors):
         if formulation != "log-chord" or targets.area_weight == 0:
             raise errors.UsageError("start='authalic' is the area modes' route and needs the log-chord formulation")
         # The run's own max_time bounds everything already (the decorator's deadline); without
         # one, the area modes' default budget; math.inf, none at all.
-        budget = (default_budget(connectivity.n_vertices, settings or DEFAULT_SETTINGS)
-                  if max_time is None and not unlimited else None)
+        budget = default_budget(connectivity.n_vertices, used) if max_time is None and not unlimited else None
         lap("build", "solve")
         route = authalic_route(connectivity, prepared.normalised_vertices, targets, budget=budget,
                                settings=settings, progress=progress, ipopt_options=ipopt_options,

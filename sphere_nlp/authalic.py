@@ -236,7 +236,8 @@ def authalic_descent(positions, faces, target_excess, deadline=None, stall=1e-3,
     halved until every solid angle is positive, their sum 4 pi, and the energy lower by Armijo's
     rule, so every iterate is a bijective map. Stops at ``deadline`` (a ``time.perf_counter``
     value), after ``max_steps``, when the mean |log area ratio| is below ``tolerance``, or when the
-    energy fell by less than ``stall`` of itself over the last 50 steps. ``progress(stage, step, energy, 0.0, seconds)`` is called after each step.
+    energy fell by less than ``stall`` of itself over the last 50 steps.
+    ``progress(stage, step, energy, 0.0, seconds)`` is called after each step.
     """
     faces = np.asarray(faces, dtype=np.int64)
     n = len(positions)

@@ -91,7 +91,9 @@ def build_parser():
     method.add_argument("--start", metavar="SPHERE",
                         help="start from an earlier sphere of this mesh (one sphere-nlp wrote for it, or for "
                              "a mesh with the same triangles); near the targets the area modes then skip "
-                             "their walk, and solving a map again takes a few iterations")
+                             "their walk, and solving a map again takes a few iterations. 'conformal': the "
+                             "area modes' NLP alone from the conformal map, without the authalic stage "
+                             "(slow on large meshes; ./conformal for a file of that name)")
     limits = parser.add_argument_group("solver limits (reaching one is a failure, unless --on-limit project)")
     limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit per stage (>= 1)")
     limits.add_argument("--max-time", type=_seconds, metavar="S",
@@ -306,30 +308,36 @@ def check_output_paths(input_path, outputs):
 
 
 def _seconds(text):
-    """--max-time: seconds, or 'none' (no limit: inf)."""
+    """--max-time: seconds, or the word 'none' (no limit, kept as the string)."""
     if text.strip().lower() == "none":
-        return math.inf
+        return "none"
     try:
         return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError("expected seconds or 'none', not %r" % text) from None
 
 
+def _max_time(args):
+    """--max-time for :func:`parameterize`: seconds, math.inf for 'none', or None (the default)."""
+    return math.inf if args.max_time == "none" else args.max_time
+
+
 def check_arguments(args):
     """Option values the parser cannot check itself (UsageError), before the mesh is read."""
     from .api import _check_arguments
 
-    for option, value in (("--max-time", None if args.max_time == math.inf else args.max_time),
-                          ("--angle-weight", args.angle_weight), ("--area-weight", args.area_weight)):
+    seconds = None if args.max_time == "none" else args.max_time
+    for option, value in (("--max-time", seconds), ("--angle-weight", args.angle_weight),
+                          ("--area-weight", args.area_weight)):
         if value is not None and not math.isfinite(value):
             raise errors.UsageError("%s must be a finite number, not %s" % (option, value))
-    if args.max_time is not None and args.max_time <= 0:
-        raise errors.UsageError("--max-time must be > 0 seconds, not %g" % args.max_time)
+    if seconds is not None and seconds <= 0:
+        raise errors.UsageError("--max-time must be > 0 seconds, not %g" % seconds)
     if args.max_iter is not None and args.max_iter <= 0:
         raise errors.UsageError("--max-iter must be >= 1, not %d" % args.max_iter)
     try:
         _check_arguments(angle_weight=args.angle_weight, area_weight=args.area_weight,
-                         max_iter=args.max_iter, max_time=args.max_time, ipopt_options=None)
+                         max_iter=args.max_iter, max_time=seconds, ipopt_options=None)
     except errors.UsageError as exc:           # the API's words for the options' values
         raise errors.UsageError(str(exc).replace("angle_weight", "--angle-weight")
                                 .replace("area_weight", "--area-weight").replace("max_iter", "--max-iter")
@@ -369,7 +377,9 @@ def run(args, progress):
         progress.stage(name)
 
     start = None
-    if args.start:
+    if args.start == "conformal":
+        start = "conformal"
+    elif args.start:
         # Read here; parameterize checks it against the mesh before the solve is announced.
         try:
             start, _ = load_mesh(args.start)
@@ -379,7 +389,7 @@ def run(args, progress):
                           area_weight=args.area_weight, formulation=args.formulation,
                           corner_weighting=args.corner_weighting, corner_floor=args.corner_floor,
                           area_floor=args.area_floor,
-                          max_iter=args.max_iter, max_time=args.max_time, on_limit=args.on_limit,
+                          max_iter=args.max_iter, max_time=_max_time(args), on_limit=args.on_limit,
                           progress=progress.iteration,
                           on_stage=on_stage, start=start, check=False)
     for repair in result.repairs:

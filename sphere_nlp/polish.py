@@ -58,7 +58,7 @@ def no_worse_band(excess, target_excess, slack):
 
     >>> lower, upper = no_worse_band(np.array([2.0, 1.0]), np.array([1.0, 1.0]), 0.01)
     >>> np.round(np.exp([lower, upper]), 3).tolist()
-    [[0.5, 0.99], [2.0, 1.01]]
+    [[0.495, 0.99], [2.02, 1.01]]
     """
     log_target = np.log(target_excess)
     half = np.abs(np.log(excess) - log_target) + slack
@@ -116,8 +116,10 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
                 on_stage("polish")
             band = no_worse_band(authalic_excess, targets.excess, settings.polish_slack)
             left = interrupts.seconds_left()
+            # No walk towards the targets first: the band already keeps the polish near them.
             polished = solve_angles(connectivity, targets, start=stage.positions, vertices=vertices,
-                                    on_limit="project", excess_band=band, settings=settings, progress=progress,
+                                    on_limit="project", excess_band=band, progress=progress,
+                                    settings=settings.replace(area_walk_distance=math.inf),
                                     max_time=None if math.isinf(left) else left, **solve_keywords)
     answer, reason, positions, unfold_info = "authalic", "no time left for the polish", stage.positions, {}
     if polished is not None:

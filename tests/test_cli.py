@@ -90,7 +90,7 @@ def test_compare_writes_rows_whose_metrics_match_recomputation(tmp_path):
 
 
 def test_compare_records_a_failed_solve_as_a_row(tmp_path):
-    p = run("compare", MODELS / "cylinder.off", "--out", tmp_path, "--methods", "sphere_nlp:equal-areas",
+    p = run("compare", MODELS / "cylinder.off", "--out", tmp_path, "--methods", "sphere_nlp:equal-angles",
             "--max-time", "1e-6", "--quiet")
     assert p.returncode == 0 and p.stderr == ""
     (row,) = json.loads((tmp_path / "compare.json").read_text())
@@ -158,25 +158,26 @@ def test_compare_all_merge_from_replaces_and_adds_rows_without_solving(tmp_path)
 
 
 def test_finish_trace_certifies_a_trace_end_point_as_compare_would(tmp_path):
-    # The big area-mode rows of docs/compare.md come from traces: their rows must be what `compare`
-    # gives for the same solve, and the sphere they write must certify.
+    # The big area-mode rows of docs/compare.md come from traces of the NLP: their rows must be what
+    # `compare` gives for the same solve (the same NLP, in an angle mode), and the sphere they write
+    # must certify.
     from pathlib import Path
     benchmarks = Path(__file__).resolve().parent.parent / "benchmarks"
     trace = tmp_path / "trace"
     with open(tmp_path / "trace.txt", "w") as log:
         proc = subprocess.run([sys.executable, str(benchmarks / "trace_solve.py"), str(MODELS / "cylinder.off"),
-                               "original-areas", "--out", str(trace)], stdout=log, stderr=subprocess.PIPE,
+                               "original-angles", "--out", str(trace)], stdout=log, stderr=subprocess.PIPE,
                               text=True)
     assert proc.returncode == 0, proc.stderr
     sphere = tmp_path / "cylinder.sphere.off"
     proc = subprocess.run([sys.executable, str(benchmarks / "finish_trace.py"), str(MODELS / "cylinder.off"),
-                           "original-areas", str(trace), "--log", str(tmp_path / "trace.txt"),
+                           "original-angles", str(trace), "--log", str(tmp_path / "trace.txt"),
                            "--row", str(tmp_path / "row.json"), "--sphere", str(sphere)],
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     [row] = json.loads((tmp_path / "row.json").read_text())
     assert run("compare", MODELS / "cylinder.off", "--out", tmp_path / "cmp",
-               "--methods", "sphere_nlp:original-areas").returncode == 0
+               "--methods", "sphere_nlp:original-angles").returncode == 0
     [reference] = json.loads((tmp_path / "cmp" / "compare.json").read_text())
     assert row["valid"] and row["status"] == "certified"
     for key in ("n_vertices", "flipped", "mean_abs_angle_diff_deg", "qc_mean", "qc_max", "mean_abs_log_area"):
@@ -199,7 +200,8 @@ def test_cli_starts_from_an_earlier_sphere_and_solves_it_again_in_a_few_iteratio
     # --start reads a sphere written for the mesh; a map solved again from itself skips the area
     # modes' walk (it is at its targets already) and ends at the same optimum.
     first, again = tmp_path / "first.off", tmp_path / "again.off"
-    p = run(MODELS / "cylinder.off", "-o", first, "--target", "original-areas", "--report", tmp_path / "1.json")
+    p = run(MODELS / "cylinder.off", "-o", first, "--target", "original-areas", "--start", "conformal",
+            "--report", tmp_path / "1.json")
     assert p.returncode == 0, p.stderr
     p = run(MODELS / "cylinder.off", "-o", again, "--target", "original-areas", "--start", first,
             "--report", tmp_path / "2.json")

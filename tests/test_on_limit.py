@@ -1,4 +1,7 @@
-"""on_limit="project": a margin stage stopped by max_iter / max_time still ends in a certified sphere."""
+"""on_limit="project": a margin stage stopped by max_iter / max_time still ends in a certified sphere.
+
+The area-mode cases run the NLP alone (start="conformal"), without the authalic route of
+sphere_nlp.polish, whose polish always projects (tests/test_authalic.py)."""
 
 import json
 
@@ -20,12 +23,12 @@ def ellipsoid():
 
 @pytest.fixture(scope="module")
 def converged(ellipsoid):
-    return sphere_nlp.parameterize(ellipsoid, "original-areas")
+    return sphere_nlp.parameterize(ellipsoid, "original-areas", start="conformal")
 
 
 @pytest.fixture(scope="module")
 def stopped(ellipsoid):
-    return sphere_nlp.parameterize(ellipsoid, "original-areas", max_iter=3, on_limit="project")
+    return sphere_nlp.parameterize(ellipsoid, "original-areas", max_iter=3, on_limit="project", start="conformal")
 
 
 def test_stopped_margin_stage_is_projected_onto_the_constraints(stopped):
@@ -57,21 +60,21 @@ def test_projection_is_near_the_optimum_not_at_it(stopped, converged):
 
 
 def test_limit_not_reached_gives_the_same_result_either_way(ellipsoid, converged):
-    projected = sphere_nlp.parameterize(ellipsoid, "original-areas", on_limit="project")
+    projected = sphere_nlp.parameterize(ellipsoid, "original-areas", on_limit="project", start="conformal")
     assert projected.converged and projected.objective == converged.objective
     assert np.array_equal(projected.vertices, converged.vertices)
 
 
 def test_default_still_fails_at_the_limit(ellipsoid):
     with pytest.raises(sphere_nlp.SolveError, match="Maximum_Iterations_Exceeded"):
-        sphere_nlp.parameterize(ellipsoid, "original-areas", max_iter=3)
+        sphere_nlp.parameterize(ellipsoid, "original-areas", max_iter=3, start="conformal")
 
 
 def test_cli_writes_the_projected_sphere_and_says_it_is_not_optimal(tmp_path, capsys, ellipsoid):
     source, out, report = tmp_path / "e.off", tmp_path / "e.sphere.off", tmp_path / "r.json"
     write_mesh(source, *ellipsoid)
     status = main([str(source), "-o", str(out), "--target", "original-areas", "--max-iter", "3",
-                   "--on-limit", "project", "--report", str(report)])
+                   "--on-limit", "project", "--start", "conformal", "--report", str(report)])
     lines = capsys.readouterr().err.strip().splitlines()
     assert status == 0 and out.exists()
     assert "NOT OPTIMAL" in lines[-1] and "Maximum_Iterations_Exceeded" in lines[-1]

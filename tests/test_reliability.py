@@ -289,12 +289,13 @@ def test_bad_limits_and_weights_are_usage_errors(option, value, fragment, tmp_pa
 
 
 def test_max_time_bounds_the_whole_run_not_each_stage():
-    # The area modes run several IPOPT stages (continuation steps, margin; about 2 s here in all):
-    # the limit covers them together.
+    # The area modes' NLP (start="conformal") runs several IPOPT stages (continuation steps, margin;
+    # about 2 s here in all): the limit covers them together.
     V, F = meshgen.ellipsoid(3, axes=(1.0, 6.0, 0.2))
     limit = 0.5
     start = time.perf_counter()
-    result = sphere_nlp.parameterize((V, F), target="original-areas", max_time=limit, check=False)
+    result = sphere_nlp.parameterize((V, F), target="original-areas", max_time=limit, check=False,
+                                     start="conformal")
     elapsed = time.perf_counter() - start
     assert result.status == "Maximum_WallTime_Exceeded" and not result.success
     ran = [s for s in result.stages if s["iterations"] > 0]
@@ -412,7 +413,7 @@ def test_default_output_keeps_every_part_of_the_name_but_the_extension(name, exp
 
 @pytest.mark.parametrize("kwargs", [
     dict(max_iter="abc"), dict(max_iter=-5), dict(max_iter=2.5), dict(max_iter=True),
-    dict(max_time=-1), dict(max_time=float("nan")), dict(max_time=float("inf")), dict(max_time="10"),
+    dict(max_time=-1), dict(max_time=float("nan")), dict(max_time="10"),
     dict(angle_weight=float("nan")), dict(area_weight=float("inf")), dict(angle_weight=1j),
     dict(ipopt_options={"no_such_option": 1}), dict(ipopt_options={"tol": "abc"}),
     dict(ipopt_options={"max_iter": -1}),

@@ -291,7 +291,7 @@ def test_falls_back_to_the_equality_stage_when_the_direct_margin_stage_diverges(
     # start in the margin stage too, with the same fall-back.
     settings, verdicts, _ = _diverging_runs(1)
     V, F = ellipsoid(2, axes=(1.0, 2.0, 0.7))
-    r = sphere_nlp.parameterize((V, F), target=mode, settings=settings)
+    r = sphere_nlp.parameterize((V, F), target=mode, settings=settings, start="conformal")
     names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
     assert names[0] == "margin" and "equality" in names[1:]
     assert verdicts[0] is False                   # the real check passed that run: no false alarm
@@ -303,7 +303,7 @@ def test_the_equality_fallback_keeps_the_corner_floors_asked_for():
     # tentacles' corners (an area mode), so the margin stage must follow from it, lifting them.
     settings, _, _ = _diverging_runs(1)
     V, F = tentacle_creature()
-    r = sphere_nlp.parameterize((V, F), target="original-areas", settings=settings, corner_floor=0.1)
+    r = sphere_nlp.parameterize((V, F), target="original-areas", settings=settings, corner_floor=0.1, start="conformal")
     names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
     assert names[:3] == ["margin", "equality", "margin"]
     u = r.angles - r.excess[:, None] / 2
@@ -331,9 +331,9 @@ def test_a_diverged_margin_stage_resumes_from_its_best_iterate_near_the_constrai
     # reaches the optimum of the undisturbed solve in a few iterations. A run the watch stopped
     # counts as diverged even where the cosine form of (8) is small at its end (keep_x).
     V, F = ellipsoid(2, axes=(1.0, 2.0, 0.7))
-    reference = sphere_nlp.parameterize((V, F), target=mode)
+    reference = sphere_nlp.parameterize((V, F), target=mode, start="conformal")
     settings, verdicts, _ = _diverging_runs(1, keep_best=True, keep_x=keep_x)
-    r = sphere_nlp.parameterize((V, F), target=mode, settings=settings)
+    r = sphere_nlp.parameterize((V, F), target=mode, settings=settings, start="conformal")
     names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
     assert names[:2] == ["margin", "margin-resumed"] and "equality" not in names
     resumed = [s for s in r.stages if s["name"] == "margin-resumed"]
@@ -366,7 +366,7 @@ def test_after_two_diverged_runs_the_margin_stage_starts_from_the_feasible_start
 
     settings, _, starts = _diverging_runs(2)
     V, F = ellipsoid(2, axes=(1.0, 2.0, 0.7))
-    r = sphere_nlp.parameterize((V, F), target="original-areas", settings=settings)
+    r = sphere_nlp.parameterize((V, F), target="original-areas", settings=settings, start="conformal")
     names = [s["name"] for s in r.stages if not s["name"].startswith("area")]
     assert names[:3] == ["margin", "equality", "margin"]
     continuation_end, fallback = starts[:2]
@@ -397,7 +397,7 @@ def test_on_run_sees_every_run_and_the_settings_cannot_change_under_it():
     seen = []
     settings = SolverSettings(on_run=lambda stage, nlp, run: seen.append((stage, run)))
     V, F = ellipsoid(1, axes=(1.0, 2.0, 0.7))
-    r = sphere_nlp.parameterize((V, F), target="original-areas", settings=settings)
+    r = sphere_nlp.parameterize((V, F), target="original-areas", settings=settings, start="conformal")
     assert [stage for stage, _ in seen] == [s["name"] for s in r.stages]
     assert [run.iterations for _, run in seen] == [s["iterations"] for s in r.stages]
     assert all(run.x0.shape == run.x.shape for _, run in seen)
@@ -437,7 +437,7 @@ def test_weighted_area_continuation_ends_near_the_objectives_optimum():
                 ends.append(nlp.unpack(run.x))
 
         settings = SolverSettings(on_run=on_run, area_continuation_weighting=weighting)
-        result = sphere_nlp.parameterize(mesh, "original-areas", settings=settings)
+        result = sphere_nlp.parameterize(mesh, "original-areas", settings=settings, start="conformal")
         targets = make_targets("original-areas", result.input_vertices, result.faces,
                                np.bincount(result.faces.ravel()))
         walk_end[weighting] = objective_value(targets, *ends[-1])
@@ -455,7 +455,7 @@ def test_an_area_mode_started_at_its_own_optimum_skips_the_walk(mode):
     from sphere_nlp.solve import start_area_distance
 
     V, F = ellipsoid(3, axes=(1.0, 4.0, 0.5))
-    first = sphere_nlp.parameterize((V, F), target=mode)
+    first = sphere_nlp.parameterize((V, F), target=mode, start="conformal")
     assert start_area_distance(first.excess, first.target_excess) <= SETTINGS.area_walk_distance
     again = sphere_nlp.parameterize((V, F), target=mode, start=first.vertices)
     assert [s["name"] for s in again.stages] == ["margin"]

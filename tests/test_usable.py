@@ -114,7 +114,7 @@ def test_area_modes_can_keep_small_target_corners_too_and_corner_floor_zero_turn
     V, F = random_genus0_mesh(300, 1)
     floor = SolverSettings(area_mode_small_corner_floor=0.5)
     floored = parameterize((V, F), "original-areas", settings=floor)
-    free = parameterize((V, F), "original-areas", settings=floor, corner_floor=0)
+    free = parameterize((V, F), "original-areas", settings=floor, corner_floor=0, start="conformal")
     beta = floored.target_angles
     small = (beta < DEFAULT_SETTINGS.small_corner_angle) & (beta >= DEFAULT_SETTINGS.area_mode_sliver_angle)
 
@@ -292,7 +292,8 @@ def test_cli_floor_and_weighting_options(tmp_path):
 def test_cli_says_how_many_corners_an_area_mode_collapsed_and_what_ended_on_a_floor(tmp_path, capsys,
                                                                                     tentacle_area_maps):
     from sphere_nlp.cli import main
-    from sphere_nlp.mesh_io import write_mesh
+    from sphere_nlp.mesh_io import load_mesh, write_mesh
+    from sphere_nlp.metrics import usability_summary
 
     (V, F), result, floored = tentacle_area_maps
     mesh = tmp_path / "tentacles.off"
@@ -300,7 +301,10 @@ def test_cli_says_how_many_corners_an_area_mode_collapsed_and_what_ended_on_a_fl
     assert main([str(mesh), "-o", str(tmp_path / "free.off"), "--target", "original-areas"]) == 0
     collapsed = [line for line in capsys.readouterr().err.splitlines() if "below 0.1 x their target" in line]
     count = int(collapsed[0].split()[0])
-    assert count == result.usability()["corners_below_fraction"] > 100
+    # The count is the independent check's of the sphere written (the area modes' runs have a time
+    # budget, so two runs need not end at the same map).
+    X, _ = load_mesh(tmp_path / "free.off")
+    assert count == usability_summary(V, X, F)["corners_below_fraction"] > 100
     assert "--corner-floor 0.1 keeps them" in collapsed[0]
     assert main([str(mesh), "-o", str(tmp_path / "floored.off"), "--target", "original-areas",
                  "--corner-floor", "0.1"]) == 0
