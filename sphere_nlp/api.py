@@ -20,7 +20,7 @@ from .metrics import distortion_summary, usability_summary
 from .mesh_io import (check_mesh_path, load_mesh, write_image, write_json, write_material, write_mesh,
                       write_npz)
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, status_kind
-from .settings import DEFAULT_SETTINGS
+from .settings import DEFAULT_SETTINGS, SolverSettings
 from .polish import authalic_route, default_budget
 from .solve import check_floors, ON_LIMIT, solve_angles
 from .starts import checked_positions
@@ -667,7 +667,9 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     area_route = None
     # The area modes' default route, unless a corner floor is asked for: the authalic map keeps no
     # floors, so the NLP alone must.
-    used = settings or DEFAULT_SETTINGS
+    used = DEFAULT_SETTINGS if settings is None else settings
+    if not isinstance(used, SolverSettings):
+        raise errors.UsageError("settings must be a sphere_nlp.SolverSettings, not %s" % type(used).__name__)
     floors = corner_floor if corner_floor is not None else max(used.area_mode_corner_floor,
                                                                used.area_mode_small_corner_floor)
     if (isinstance(start, str) and start == "authalic") or (start is None and targets.area_weight > 0
