@@ -123,6 +123,27 @@ def raise_if_interrupted():
         raise Interrupted(_pending)
 
 
+def check_before_write():
+    """Raise :class:`Interrupted` if a signal is pending and not deferred: called before every file
+    is written, so that one a library caught (``except BaseException``) still stops the writes."""
+    if _pending is not None and not _deferred:
+        raise Interrupted(_pending)
+
+
+def request_stop(signum=signal.SIGTERM):
+    """Ask the running solve to stop as a signal would (from another thread, e.g. a Dask task's
+    watcher): IPOPT stops at its next iteration and :class:`Interrupted` is raised."""
+    global _pending
+    if _pending is None:
+        _pending = signum
+
+
+def clear_stop():
+    """Forget a :func:`request_stop` (a worker process that goes on with other work)."""
+    global _pending
+    _pending = None
+
+
 def deadline_passed():
     return time.perf_counter() >= _deadline
 

@@ -361,8 +361,12 @@ def atomic_output(path, mode="w"):
     Inside :func:`output_transaction` the finished temporary file is staged instead, and renamed
     together with the transaction's other outputs when the transaction ends.
     """
+    from . import interrupts
+
     path = Path(path)
     directory = path.parent if str(path.parent) else Path(".")
+    # A signal some library caught (and went on) still stops every write.
+    interrupts.check_before_write()
     fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".tmp", dir=directory)
     try:
         # mkstemp makes the file private (0600); give it the permissions a plain open() would.
@@ -371,6 +375,7 @@ def atomic_output(path, mode="w"):
         os.chmod(tmp, 0o666 & ~umask)
         with os.fdopen(fd, mode) as handle:
             yield handle
+        interrupts.check_before_write()
         if _staged is not None:
             _staged.append((tmp, path))
         else:
@@ -427,6 +432,46 @@ def output_transaction():
         raise
     _staged = None
     _commit(staged)
+
+
+@contextmanager
+def staged_outputs():
+    """Like :func:`output_transaction`, but the finished temporary files are left for the caller,
+    as the list this yields of (temporary path, destination), to rename with :func:`commit_staged`
+    (or remove): a batch's worker stages a mesh's files, and the batch renames them when it records
+    the mesh. On any exception the temporary files are removed."""
+    global _staged
+    if _staged is not None:
+        raise RuntimeError("staged_outputs() inside another transaction")
+    staged = _staged = []
+    try:
+        yield staged
+    except BaseException:
+        _staged = None
+        for tmp, _ in staged:
+            _remove_quietly(tmp)
+        raise
+    _staged = None
+
+
+def commit_staged(staged, remove=()):
+    """Rename files staged by :func:`staged_outputs` into place in their order, after removing the
+    paths ``remove`` (outputs of an earlier run that this one replaces with nothing). Signals are
+    deferred meanwhile (:func:`sphere_nlp.interrupts.defer_signals`); the caller decides what a
+    pending one means afterwards."""
+    from . import interrupts
+
+    with interrupts.defer_signals():
+        for path in remove:
+            _remove_quietly(path)
+        for tmp, path in staged:
+            os.replace(tmp, path)
+
+
+def discard_staged(staged):
+    """Remove files staged by :func:`staged_outputs` that will not be committed."""
+    for tmp, _ in staged:
+        _remove_quietly(tmp)
 
 
 def _commit(staged):
