@@ -310,13 +310,16 @@ def failure_line(result, report=None):
     from .nlp import status_kind
 
     stages = result.stages or []
-    last = stages[-1] if stages else None
+
+    def iterations(n):
+        return "%d iteration%s" % (n, "" if n == 1 else "s")
+
     if len(stages) > 1:
-        count = ("IPOPT status %s in its last stage, %s, after %d iterations; %d iterations over %d stages "
-                 "in all (--max-iter limits each stage)" % (result.status, last["name"], last["iterations"],
-                                                             result.iterations, len(stages)))
+        count = ("IPOPT status %s in stage %s after %s; %s over %d stages in all, --max-iter limits each "
+                 "stage" % (result.status, stages[-1]["name"], iterations(stages[-1]["iterations"]),
+                            iterations(result.iterations), len(stages)))
     else:
-        count = "IPOPT status %s after %d iterations" % (result.status, result.iterations)
+        count = "IPOPT status %s after %s" % (result.status, iterations(result.iterations))
     if result.status == "Maximum_WallTime_Exceeded" and result.iterations == 0:
         count += "; the time limit was reached before IPOPT's first iteration"
     if not result.solved:

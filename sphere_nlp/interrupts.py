@@ -55,7 +55,7 @@ _run_over = False         # the program's run has left handled_signals(): its ex
 
 def _handler(signum, frame):
     global _pending, _program_signal
-    if _program_signal is None:
+    if _program_signal is None and _program_clock is not None:
         _program_signal = signum
     if _pending is not None:
         return                  # already stopping: the first signal decides, the clean-up goes on
