@@ -110,15 +110,32 @@ def _check_header(path, suffix):
         if not head.startswith(b"ply"):
             raise errors.UnreadableMeshError("cannot read %s: not a PLY file (it does not start with 'ply')"
                                              % path)
-        if head.find(b"end_header") < 0:
+        end = head.find(b"end_header")
+        if end < 0:
             raise errors.UnreadableMeshError("cannot read %s as a mesh: the PLY header has no end_header "
                                              "(in its first %d KB)" % (path, HEADER_BYTES >> 10))
+        if b"format ascii" in head[:end]:
+            # The body's first line must be numbers: text that is not a PLY body is refused here,
+            # before trimesh reads the whole file.
+            after = head[end:].split(b"\n", 1)
+            first = next((line for line in (after[1] if len(after) > 1 else b"").split(b"\n")
+                          if line.strip()), b"")
+            try:
+                [float(word) for word in first.split()]
+            except ValueError:
+                raise errors.UnreadableMeshError("cannot read %s: not a PLY file (the first line after its "
+                                                 "ASCII header is not numbers)" % path) from None
     elif suffix == ".stl":
         # Binary STL: an 80-byte header, a triangle count, 50 bytes per triangle; ASCII STL: "solid".
         binary_ok = size >= 84 and size == 84 + 50 * int.from_bytes(head[80:84], "little")
-        if not binary_ok and not head.lstrip().lower().startswith(b"solid"):
-            raise errors.UnreadableMeshError("cannot read %s: not an STL file (neither ASCII, starting with "
-                                             "'solid', nor binary with a consistent triangle count)" % path)
+        if not binary_ok:
+            lines = [line.strip().lower() for line in head.split(b"\n") if line.strip()]
+            # ASCII STL: "solid NAME", then "facet normal ..." (or "endsolid" for an empty one).
+            if not (lines and lines[0].startswith(b"solid")
+                    and (len(lines) < 2 or lines[1].startswith((b"facet", b"endsolid")))):
+                raise errors.UnreadableMeshError("cannot read %s: not an STL file (neither ASCII, starting with "
+                                                 "'solid' and a facet, nor binary with a consistent triangle "
+                                                 "count)" % path)
 
 
 def _load_with_trimesh(path):
