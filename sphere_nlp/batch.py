@@ -354,10 +354,16 @@ def map_one(task, stop_event=None):
             return _map_one(task)
         watcher = _StopWatcher(stop_event)
         try:
-            return _map_one(task)
+            if watcher.event.is_set():
+                raise interrupts.Interrupted(signal.SIGTERM)
+            row, staged, stale = _map_one(task)
         finally:
             watcher.close()
             interrupts.clear_stop()
+        if watcher.event.is_set():        # told to stop while staging: the batch will not take them
+            discard_staged(staged)
+            raise interrupts.Interrupted(signal.SIGTERM)
+        return row, staged, stale
 
 
 class _StopWatcher:
@@ -753,7 +759,7 @@ def _run_dask(tasks, client, retries, recorder, notify):
     On a signal the futures are cancelled and the running tasks told to stop (a Dask Event their
     solves watch); the batch waits up to :data:`DASK_STOP_WAIT_S` for them and drops their files.
     """
-    from distributed import Event, wait
+    from distributed import wait
 
     workers = client.scheduler_info().get("workers", {}).values()
     memories = [w.get("resources", {}).get("MEMORY") for w in workers]
@@ -797,17 +803,19 @@ def _run_dask(tasks, client, retries, recorder, notify):
 
 
 def _stop_dask_tasks(client, futures, stop_event):
-    """Cancel the batch's futures, tell its running tasks to stop, wait a little for them, and
-    remove the files of those that finished meanwhile."""
+    """Tell the batch's tasks to stop, wait a little for them, cancel those still going, and remove
+    the files of those that finished meanwhile."""
     from distributed import Event, wait
 
     try:
+        # Running tasks stop at their next IPOPT iteration, queued ones as they start, and a task
+        # that has staged its files removes them itself once it sees the event.
         Event(stop_event, client=client).set()
-        client.cancel(list(futures), force=True)
         try:
             wait(list(futures), timeout=DASK_STOP_WAIT_S)
         except TimeoutError:
             pass
+        client.cancel([future for future in futures if not future.done()], force=True)
         for future in futures:
             if future.status == "finished":
                 discard_staged(future.result()[1])

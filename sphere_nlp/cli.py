@@ -435,7 +435,10 @@ def main(argv=None):
     """
     if argv is None:
         interrupts.program_started()
-        argv = sys.argv[1:]
+        try:
+            return main(sys.argv[1:])
+        finally:
+            interrupts.program_finished()
     argv = list(argv)
     stderr = SafeStream(sys.stderr)
     if argv[:1] and argv[0] in SUBCOMMANDS:          # sphere-nlp resample MESH --icosphere 5 -o OUT

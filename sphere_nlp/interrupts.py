@@ -95,6 +95,18 @@ def program_started(name="sphere-nlp"):
     return time.perf_counter() - _program_clock
 
 
+def program_finished():
+    """The program's exit status is settled: SIGINT and SIGTERM are ignored from here on.
+
+    Python's finalization puts the default handlers back for the signals it handles, so a second
+    signal while the interpreter shuts down (freeing numpy, CasADi) would kill the process instead
+    of letting it exit with its status; an ignored signal stays ignored.
+    """
+    if _program_clock is not None and threading.current_thread() is threading.main_thread():
+        for s in SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
+
+
 def name_program(name):
     """The prefix of the start-up signal line from now on, if :func:`program_started` ran."""
     global _program

@@ -731,20 +731,17 @@ class _AngleProblem:
         if lam_x0 is not None:
             args["lam_x0"] = lam_x0
         start = time.perf_counter()
-        if interrupts.deadline_passed():
-            # The run's time is up (interrupts.deadline): report the limit without starting IPOPT.
-            x0 = np.array(x0, dtype=float).ravel()
-            return IpoptRun(x0=x0, x=x0.copy(), lam_g=np.zeros(len(lbg)), lam_x=np.zeros(len(x0)),
-                            objective=float("nan"), status="Maximum_WallTime_Exceeded", iterations=0,
-                            time_s=0.0, build_s=build_s, stats={})
         if self._numeric is not None:
             self._numeric.modify_hessian = modify_hessian
         try:
-            out = solver(**args)
+            # A signal inside IPOPT is only recorded: raised inside a callback, CasADi would catch
+            # it and IPOPT step around it; the iteration callback stops IPOPT instead
+            # (interrupts.stop_requested), and the signal is raised once IPOPT has returned.
+            with interrupts.defer_signals():
+                out = solver(**args)
         finally:
             if self._numeric is not None:
                 self._numeric.modify_hessian = None
-        # IPOPT swallows what its callbacks raise; a signal it caught ends the run here.
         interrupts.raise_if_interrupted()
         stats = solver.stats()
         status = stats.get("return_status", "unknown")

@@ -260,7 +260,7 @@ def unit_sphere(S, sphere_path):
         raise errors.UsageError(
             "%s is not a sphere centred at the origin (radii %.4g to %.4g, centroid %.3g from the origin)"
             % (sphere_path, radii.min(), radii.max(), centroid))
-    return S / radii[:, None], "%s: a sphere of radius %.6g, scaled onto the unit sphere" % (sphere_path, radius)
+    return S / radii[:, None], "%s: a sphere of radius %.4g, scaled onto the unit sphere" % (sphere_path, radius)
 
 
 def validated_mesh(path):
