@@ -169,7 +169,7 @@ def check_stopped_batch(out, process, sent, signum, stderr):
     assert took < 2.5, took
     assert stderr.strip().splitlines()[-1].startswith("sphere-nlp batch: interrupted; every worker stopped")
     before = folder_state(out)
-    time.sleep(3.0)                                        # nothing appears or changes afterwards
+    time.sleep(2.0)                                        # nothing appears or changes afterwards
     assert folder_state(out) == before
     files = sorted(p.name for p in out.iterdir())
     assert not [f for f in files if f.endswith(".tmp")]
@@ -217,6 +217,7 @@ def test_a_sequential_batch_stops_the_running_ipopt_on_sigint(tmp_path):
     check_stopped_batch(out, process, sent, signal.SIGINT, stderr)
 
 
+@pytest.mark.slow
 def test_dask_tasks_of_an_interrupted_batch_stop_and_leave_no_file(tmp_path):
     distributed = pytest.importorskip("distributed")
     from sphere_nlp.batch import map_meshes
@@ -236,7 +237,7 @@ def test_dask_tasks_of_an_interrupted_batch_stop_and_leave_no_file(tmp_path):
             map_meshes([inputs], out, target="original-areas", client=client, progress=progress)
         took = time.perf_counter() - stopped[0]
         before = folder_state(out)
-        time.sleep(3.0)
+        time.sleep(2.0)
         assert folder_state(out) == before                 # the running tasks stopped, wrote nothing
         assert took < 3.0
         assert client.processing() in ({}, {w: () for w in client.processing()})   # nothing running
