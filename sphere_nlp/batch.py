@@ -10,9 +10,10 @@ parent folders where two inputs have the same file name, e.g. ``sub-01/lh``):
   section (input, options, summary row), written last and also for a failed mesh;
 
 and for the batch ``summary.csv`` and ``summary.md``: one row per mesh with its vertices, status,
-exit reason, time, iterations, distortion figures and peak memory. Every file is written atomically
-(temporary file + rename), so an interrupted batch leaves no partial file; the summary is rewritten
-as meshes finish.
+exit reason, time, iterations, distortion figures and peak memory. A worker writes a mesh's files as
+temporary files; the batch renames them into place and rewrites the summary, at most every
+:data:`COMMIT_INTERVAL_S` seconds for all meshes finished meanwhile, so the summary always lists
+exactly the meshes whose files are complete.
 
 A bad or failing mesh is a row (``bad input``, ``solve failed``, ``certificate failed`` or ``error``)
 with its one-line reason, and the batch goes on. Re-running the same command skips the meshes whose
@@ -21,8 +22,10 @@ unconverged, projected sphere only under the same limits), unless ``--force``. `
 starts every mesh from one sphere, for a dataset whose meshes share its triangles.
 
 Exit status: 0 every mesh has a certified sphere; 1 some mesh failed; 2 bad usage (no input, an
-input that does not exist, two inputs with the same output name, bad options), found before anything
-runs; 130 interrupted.
+input that does not exist, two inputs with the same output name, an output that would replace an
+input, bad options), found before anything runs; 130 / 143 SIGINT / SIGTERM: every worker is stopped
+(local processes killed, Dask tasks cancelled and told to stop), nothing is written after the
+signal, and the meshes finished but not yet recorded are dropped (a rerun maps them again).
 
 Parallelism: ``--jobs N`` runs up to N meshes at a time in worker processes (one IPOPT each, BLAS
 threads pinned to 1); the default is one per core, and a run starts only when its memory bound
@@ -31,7 +34,6 @@ batch began. ``--scheduler ADDRESS`` sends the meshes as Dask futures to an exis
 ``dask.distributed`` cluster whose workers read the inputs and write the outputs on a shared path.
 """
 
-import argparse
 import csv
 import glob
 import io
@@ -48,9 +50,10 @@ from collections import deque
 from contextlib import contextmanager
 from pathlib import Path
 
-from . import errors
+from . import errors, interrupts
 from .heap import arrays_on_heap
-from .mesh_io import atomic_output, load_mesh, write_json
+from .mesh_io import (atomic_output, commit_staged, discard_staged, load_mesh, staged_outputs,
+                      write_json)
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS
 from .solve import ON_LIMIT
 from .targets import MODES
@@ -73,6 +76,12 @@ MEMORY_BUDGET_SHARE = 0.8
 
 # A run that breaks its worker process (killed for memory, a crash) is tried once more in a new one.
 WORKER_ATTEMPTS = 2
+
+# Finished meshes are renamed into place together with a rewritten summary at most this often, so
+# that a dataset of many small meshes does not rewrite its summary for every one.
+COMMIT_INTERVAL_S = 2.0
+# After a signal, how long the Dask tasks of the batch get to stop before the batch exits.
+DASK_STOP_WAIT_S = 1.5
 
 SUMMARY_FIELDS = ("mesh", "input", "vertices", "status", "reason", "time_s", "iterations",
                   "mean_abs_angle_diff_deg", "mean_abs_log_area", "qc_mean", "area_cv", "peak_rss_mb",
@@ -326,15 +335,60 @@ def failure_row(task, status, reason, elapsed=None, vertices=None):
     return row
 
 
-def map_one(task):
-    """Map one mesh of a batch and write its outputs; its summary row (runs in a worker).
+def map_one(task, stop_event=None):
+    """Map one mesh of a batch and stage its outputs (runs in a worker); ``(row, staged, stale)``.
 
-    ``task`` is a plain dict made by :func:`plan` (input, output names, options). Input errors, solve
-    and certificate failures and running out of memory become rows; anything else (a bug, a file
-    system error) is raised, for the caller (or Dask's retries) to deal with.
+    ``task`` is a plain dict made by :func:`plan` (input, output names, options). The outputs are
+    temporary files beside their destinations, ``staged`` [(temporary, destination)], the report
+    last; ``stale`` are outputs of an earlier run this one leaves without a replacement (a failed
+    mesh's old sphere). The batch renames and removes them (:func:`sphere_nlp.mesh_io.commit_staged`)
+    when it records the row. Input errors, solve and certificate failures and running out of memory
+    become rows; anything else (a bug, a file system error) is raised, for the caller (or Dask's
+    retries) to deal with.
+
+    ``stop_event``: the name of a Dask ``Event`` that, once set, stops the solve as a signal would
+    (a Dask task cannot be killed); the mesh then raises :class:`~sphere_nlp.interrupts.Interrupted`.
     """
     with _SOLVE_LOCK:
-        return _map_one(task)
+        if stop_event is None:
+            return _map_one(task)
+        watcher = _StopWatcher(stop_event)
+        try:
+            if watcher.event.is_set():
+                raise interrupts.Interrupted(signal.SIGTERM)
+            row, staged, stale = _map_one(task)
+        finally:
+            watcher.close()
+            interrupts.clear_stop()
+        if watcher.event.is_set():        # told to stop while staging: the batch will not take them
+            discard_staged(staged)
+            raise interrupts.Interrupted(signal.SIGTERM)
+        return row, staged, stale
+
+
+class _StopWatcher:
+    """A thread asking the solve of this process to stop once the Dask Event ``name`` is set."""
+
+    def __init__(self, name, poll_s=0.5):
+        from distributed import Event
+
+        self.event = Event(name)
+        self.done = threading.Event()
+        self.poll_s = poll_s
+        self.thread = threading.Thread(target=self._watch, daemon=True)
+        self.thread.start()
+
+    def _watch(self):
+        while not self.done.is_set():
+            try:
+                if self.event.wait(timeout=self.poll_s):
+                    interrupts.request_stop()
+                    return
+            except Exception:       # the scheduler is gone: nobody can ask any more
+                return
+
+    def close(self):
+        self.done.set()
 
 
 def _map_one(task):
@@ -344,7 +398,7 @@ def _map_one(task):
     outputs = {kind: out / name for kind, name in task["outputs"].items()}
     outputs["report"].parent.mkdir(parents=True, exist_ok=True)
     options = task["options"]
-    stale = [outputs["sphere"]] + ([outputs["png"]] if "png" in outputs else [])
+    produced = [outputs["sphere"]] + ([outputs["png"]] if "png" in outputs else [])
     batch_info = {"input": task["input"], "options": options, "outputs": task["outputs"],
                   "worker": "%s:%d" % (socket.gethostname(), os.getpid())}
     _reset_peak_memory()
@@ -366,12 +420,11 @@ def _map_one(task):
         else:
             status, reason = "bad input", "cannot read %s: %s" % (task["input"], exc.strerror or exc)
         row = failure_row(task, status, reason, time.perf_counter() - clock)
-        _remove(stale)
-        write_json(outputs["report"], {"success": False, "status": status, "reason": reason,
-                                       "batch": {**batch_info, "summary": row}})
-        return row
-    complete = False
-    try:
+        with staged_outputs() as staged:
+            write_json(outputs["report"], {"success": False, "status": status, "reason": reason,
+                                           "batch": {**batch_info, "summary": row}})
+        return row, staged, produced
+    with staged_outputs() as staged:
         if result.success:
             result.write(outputs["sphere"])
             if "png" in outputs:
@@ -381,22 +434,16 @@ def _map_one(task):
             else:
                 status = "certified, not optimal"
                 reason = "%s; last iterate projected onto the constraints" % result.status
+        elif not result.solved:
+            status, reason = "solve failed", solve_failure_message(result.status, result.iterations)
         else:
-            _remove(stale)
-            if not result.solved:
-                status, reason = "solve failed", solve_failure_message(result.status, result.iterations)
-            else:
-                status = "certificate failed"
-                reason = "the sphere failed its certificate: %s" % result.certificate.reason
+            status = "certificate failed"
+            reason = "the sphere failed its certificate: %s" % result.certificate.reason
         row = _row_from_result(task, result, status, reason, time.perf_counter() - clock)
         report = result.report()
         report["batch"] = {**batch_info, "summary": row}
         write_json(outputs["report"], report)     # last: a report beside a sphere marks it done
-        complete = True
-    finally:
-        if not complete:
-            _remove(stale)        # interrupted between files: none of this mesh's outputs, not some
-    return row
+    return row, staged, [] if result.success else produced
 
 
 def finished_row(task):
@@ -507,76 +554,114 @@ def _single_threaded_blas():
                 os.environ[name] = value
 
 
-_IN_TASK = False
-
-
 def _stop_worker(signum, frame):
-    """SIGTERM in a local worker: interrupt its mesh (its atomic writes clean up), or just exit when idle."""
-    if _IN_TASK:
-        raise KeyboardInterrupt
-    os._exit(130)
+    """SIGTERM in a local worker: end at once. It writes only temporary files, which the batch
+    removes; the batch itself stops its workers with SIGKILL (see _kill_workers)."""
+    os._exit(128 + signum)
 
 
 def _init_worker():
-    # Ctrl-C reaches the whole process group; the workers leave it to the parent, which stops them
-    # with SIGTERM (see _interrupt_workers).
+    # Ctrl-C reaches the whole process group; the workers leave it to the batch, which kills them.
+    # The batch starts them with both signals blocked (see _signals_blocked), so that none arrives
+    # before these handlers are in place.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _stop_worker)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, interrupts.SIGNALS)
 
 
-def _map_one_in_worker(task):
-    global _IN_TASK
-    _IN_TASK = True
+@contextmanager
+def _signals_blocked():
+    """SIGINT and SIGTERM held back inside the block (delivered after it): worker processes started
+    here inherit the blocked mask until their initializer has set their handlers."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, interrupts.SIGNALS)
     try:
-        return map_one(task)
+        yield
     finally:
-        _IN_TASK = False
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _error_row(task, exc):
     """The row of a mesh whose run raised something unexpected (a bug, a file system error)."""
-    return failure_row(task, "error", "%s: %s" % (type(exc).__name__, exc))
+    return failure_row(task, "error", "%s: %s" % (type(exc).__name__, exc)), [], []
 
 
-@contextmanager
-def _noticing_sigint():
-    """A function telling whether Ctrl-C came, which CasADi may turn into a stopped solve."""
-    # CasADi catches the KeyboardInterrupt raised inside IPOPT's callbacks and ends the solve with a
-    # warning, so the batch could go on to the next mesh; the flag makes it stop all the same.
-    hit = []
-    if threading.current_thread() is not threading.main_thread() \
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        yield lambda: bool(hit)
-        return
+class _Recorder:
+    """The batch's rows, and the finished meshes waiting to be renamed into place.
 
-    def handler(signum, frame):
-        hit.append(signum)
-        raise KeyboardInterrupt
+    A finished mesh's staged files are committed together with a rewritten summary, at most every
+    :data:`COMMIT_INTERVAL_S` seconds and at the end (:meth:`flush`), with signals deferred, so the
+    summary lists exactly the meshes whose files are in place; after a signal the meshes still
+    waiting are discarded (:meth:`discard`), and nothing more is written.
+    """
 
-    signal.signal(signal.SIGINT, handler)
-    try:
-        yield lambda: bool(hit)
-    finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+    def __init__(self, out_dir, tasks, notify):
+        self.out_dir, self.tasks, self.notify = out_dir, tasks, notify
+        self.rows = {}
+        self.waiting = []           # (task, row, staged, stale)
+        self.last_commit = time.monotonic()
+        self.summary_due = False
+
+    def summary_rows(self):
+        return [self.rows[t["name"]] for t in self.tasks if t["name"] in self.rows]
+
+    def resumed(self, task, row):
+        """A mesh an earlier run finished: its files are in place."""
+        self.rows[task["name"]] = row
+        self.summary_due = True
+        self.notify("done", task, row, ran=False)
+
+    def finished(self, task, outcome):
+        """A mesh mapped now: ``(row, staged, stale)`` from :func:`map_one`."""
+        self.waiting.append((task,) + tuple(outcome))
+        self.flush(force=False)
+
+    def seconds_to_flush(self):
+        """How long until the waiting meshes are due to be committed (None: none waiting)."""
+        if not self.waiting:
+            return None
+        return max(0.0, self.last_commit + COMMIT_INTERVAL_S - time.monotonic())
+
+    def flush(self, force=True):
+        """Commit the waiting meshes and rewrite the summary (if due, or ``force``)."""
+        if not (self.waiting or self.summary_due):
+            return
+        if not force and time.monotonic() - self.last_commit < COMMIT_INTERVAL_S:
+            return
+        done = []
+        with interrupts.defer_signals():
+            for task, row, staged, stale in self.waiting:
+                commit_staged(staged, remove=[Path(self.out_dir) / stale_path for stale_path in stale])
+                self.rows[task["name"]] = row
+                done.append((task, row))
+            self.waiting = []
+            write_summary(self.out_dir, self.summary_rows())
+            self.summary_due = False
+        self.last_commit = time.monotonic()
+        for task, row in done:
+            self.notify("done", task, row)
+        # A signal during the commit: the meshes are in place and listed; stop now.
+        interrupts.raise_if_interrupted()
+
+    def discard(self):
+        """Remove the staged files of the meshes still waiting (after a signal)."""
+        for _, _, staged, _ in self.waiting:
+            discard_staged(staged)
+        self.waiting = []
 
 
-def _run_sequential(tasks, report_row, notify):
-    with _noticing_sigint() as interrupted:
-        for task in tasks:
-            notify("start", task)
-            try:
-                row = map_one(task)
-            except Exception as exc:          # on this mesh only; KeyboardInterrupt stops the batch
-                row = _error_row(task, exc)
-            if interrupted():
-                # This mesh's solve may have been cut short: a failure is not its own, nor recorded.
-                if row["status"] not in CERTIFIED:
-                    _remove([Path(task["out_dir"]) / task["outputs"]["report"]])
-                raise KeyboardInterrupt
-            report_row(task, row)
+def _run_sequential(tasks, recorder, notify):
+    """One mesh after the other in this process; a signal stops the running IPOPT too."""
+    for task in tasks:
+        notify("start", task)
+        try:
+            outcome = map_one(task)
+        except Exception as exc:          # on this mesh only; a signal (KeyboardInterrupt) stops the batch
+            outcome = _error_row(task, exc)
+        interrupts.raise_if_interrupted()
+        recorder.finished(task, outcome)
 
 
-def _run_local(tasks, jobs, budget_mb, report_row, notify):
+def _run_local(tasks, jobs, budget_mb, recorder, notify):
     """Up to ``jobs`` meshes at a time in worker processes, within ``budget_mb`` of planned memory."""
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -602,24 +687,26 @@ def _run_local(tasks, jobs, budget_mb, report_row, notify):
                         break                    # wait until it fits beside the runs going on
                     pending.popleft()
                     notify("start", task)
-                    running[executor.submit(_map_one_in_worker, task)] = task
-                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                    with _signals_blocked():     # a worker process may start here
+                        running[executor.submit(map_one, task)] = task
+                done, _ = wait(running, timeout=recorder.seconds_to_flush(), return_when=FIRST_COMPLETED)
                 broken = False
                 for future in done:
                     task = running.pop(future)
                     try:
-                        report_row(task, future.result())
+                        recorder.finished(task, future.result())
                     except BrokenProcessPool:
                         broken = True
                         attempts[task["name"]] = attempts.get(task["name"], 0) + 1
                         if attempts[task["name"]] < WORKER_ATTEMPTS:
                             pending.appendleft(task)
                         else:
-                            report_row(task, failure_row(
+                            recorder.finished(task, (failure_row(
                                 task, "error", "its worker process died (killed by the system, e.g. for "
-                                "lack of memory, or crashed)"))
+                                "lack of memory, or crashed)"), [], []))
                     except Exception as exc:     # a bug or a file system error, on this mesh only
-                        report_row(task, _error_row(task, exc))
+                        recorder.finished(task, _error_row(task, exc))
+                recorder.flush(force=False)
                 if broken:
                     for future, task in running.items():     # they died with the pool: run them again
                         pending.appendleft(task)
@@ -627,46 +714,52 @@ def _run_local(tasks, jobs, budget_mb, report_row, notify):
                     executor.shutdown(wait=False, cancel_futures=True)
                     executor = new_executor()
         except BaseException:
-            _interrupt_workers(executor)
+            _kill_workers(executor)
             raise
         executor.shutdown(wait=True)
 
 
-def _interrupt_workers(executor, grace_s=10.0):
-    """Stop the workers: SIGTERM (a mesh's atomic writes remove their temporary files), then SIGKILL.
+def _kill_workers(executor):
+    """Stop the workers at once (SIGKILL): they write only temporary files, which the batch removes.
 
-    A worker inside IPOPT's C code sees the signal only at its next return to Python; one that has not
-    stopped after ``grace_s`` is killed, and the batch removes temporary files left behind.
+    SIGKILL rather than SIGTERM: a worker inside IPOPT's or MUMPS's C code would see a SIGTERM only
+    at its next return to Python, and must write nothing after the batch was told to stop.
     """
-    # ProcessPoolExecutor has no public way to interrupt running calls; its _processes are the workers.
+    # ProcessPoolExecutor has no public way to stop running calls; its _processes are the workers.
     processes = list((getattr(executor, "_processes", None) or {}).values())
+    for process in processes:
+        try:
+            process.kill()
+        except (OSError, ValueError):
+            pass
     executor.shutdown(wait=False, cancel_futures=True)
     for process in processes:
-        if process.is_alive():
-            process.terminate()
-    deadline = time.monotonic() + grace_s
-    for process in processes:
-        process.join(max(0.0, deadline - time.monotonic()))
-        if process.is_alive():
-            process.kill()
-            process.join(1.0)
+        process.join(2.0)
 
 
-def _map_one_on_dask(task):
+def _map_one_on_dask(task, stop_event=None):
     """:func:`map_one` on a Dask worker, its large arrays on glibc's heap (:mod:`sphere_nlp.heap`).
 
     Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536, which also fixes glibc's mmap
     threshold at 128 KiB, so every larger numpy temporary was a fresh mmap: cheburashka.off took
     9.5-10.0 s on a worker instead of 7.6-8.6 s. The whole task runs heap-only, and the memory goes
-    back to the system after each mesh, as the worker expects.
+    back to the system after each mesh, as the worker expects. A task told to stop (``stop_event``
+    set) returns a row without files.
     """
-    with arrays_on_heap():
-        return map_one(task)
+    try:
+        with arrays_on_heap():
+            return map_one(task, stop_event)
+    except interrupts.Interrupted:
+        return failure_row(task, "error", "stopped: the batch was interrupted"), [], []
 
 
-def _run_dask(tasks, client, retries, report_row, notify):
-    """Every mesh as a Dask future on ``client``'s cluster; rows as they complete."""
-    from distributed import as_completed
+def _run_dask(tasks, client, retries, recorder, notify):
+    """Every mesh as a Dask future on ``client``'s cluster; rows as they complete.
+
+    On a signal the futures are cancelled and the running tasks told to stop (a Dask Event their
+    solves watch); the batch waits up to :data:`DASK_STOP_WAIT_S` for them and drops their files.
+    """
+    from distributed import wait
 
     workers = client.scheduler_info().get("workers", {}).values()
     memories = [w.get("resources", {}).get("MEMORY") for w in workers]
@@ -674,28 +767,60 @@ def _run_dask(tasks, client, retries, report_row, notify):
     annotate = bool(memories) and all(m is not None for m in memories)
     largest = max(memories) if annotate else None
     batch_id = uuid.uuid4().hex[:8]
+    stop_event = "sphere-nlp-stop-%s" % batch_id
     futures = {}
     try:
         for task in tasks:
             extra = {}
             if annotate:
                 extra["resources"] = {"MEMORY": min(task["memory_mb"] * 2 ** 20, largest)}
-            future = client.submit(_map_one_on_dask, task, key="sphere-nlp-%s-%s" % (task["name"], batch_id),
+            future = client.submit(_map_one_on_dask, task, stop_event,
+                                   key="sphere-nlp-%s-%s" % (task["name"], batch_id),
                                    retries=retries, pure=False, **extra)
             futures[future] = task
             notify("start", task)
-        for future in as_completed(list(futures)):
-            task = futures[future]
-            if future.status == "finished":
-                row = future.result()
-            elif future.status == "cancelled":
-                row = failure_row(task, "error", "its Dask task was cancelled")
-            else:
-                row = _error_row(task, future.exception())
-            report_row(task, row)
+        remaining = set(futures)
+        while remaining:
+            try:
+                done = wait(list(remaining), timeout=recorder.seconds_to_flush(),
+                            return_when="FIRST_COMPLETED").done
+            except TimeoutError:
+                done = set()
+            for future in done:
+                remaining.discard(future)
+                task = futures[future]
+                if future.status == "finished":
+                    outcome = future.result()
+                elif future.status == "cancelled":
+                    outcome = failure_row(task, "error", "its Dask task was cancelled"), [], []
+                else:
+                    outcome = _error_row(task, future.exception())
+                recorder.finished(task, outcome)
+            recorder.flush(force=False)
     except BaseException:
-        client.cancel(list(futures))
+        _stop_dask_tasks(client, futures, stop_event)
         raise
+
+
+def _stop_dask_tasks(client, futures, stop_event):
+    """Tell the batch's tasks to stop, wait a little for them, cancel those still going, and remove
+    the files of those that finished meanwhile."""
+    from distributed import Event, wait
+
+    try:
+        # Running tasks stop at their next IPOPT iteration, queued ones as they start, and a task
+        # that has staged its files removes them itself once it sees the event.
+        Event(stop_event, client=client).set()
+        try:
+            wait(list(futures), timeout=DASK_STOP_WAIT_S)
+        except TimeoutError:
+            pass
+        client.cancel([future for future in futures if not future.done()], force=True)
+        for future in futures:
+            if future.status == "finished":
+                discard_staged(future.result()[1])
+    except Exception:           # the cluster is gone: nothing more can be asked of it
+        pass
 
 
 def _load_client(address):
@@ -797,6 +922,7 @@ def map_meshes(paths, out_dir, target="original-angles", *, angle_weight=None, a
                "formulation": formulation, "max_iter": max_iter, "max_time": max_time,
                "on_limit": on_limit, "png_measure": png_measure, "start": start}
     tasks = plan(paths, out_dir, options, png=png, output_format=output_format)
+    check_outputs(tasks, paths, start)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -806,53 +932,58 @@ def map_meshes(paths, out_dir, target="original-angles", *, angle_weight=None, a
         raise errors.UsageError("cannot write to the output folder %s" % out_dir)
     _remove(_temporary_files(out_dir, tasks))
 
-    rows = {}
     counts = {"done": 0, "failed": 0, "running": 0, "total": len(tasks)}
-    last_summary = [0.0]
 
-    def summary_rows():
-        return [rows[t["name"]] for t in tasks if t["name"] in rows]
-
-    def notify(event, task, row=None):
+    def notify(event, task, row=None, ran=True):
         if event == "start":
             counts["running"] += 1
+        else:
+            counts["done"] += 1
+            counts["running"] -= ran
+            counts["failed"] += row["status"] not in CERTIFIED
         if progress is not None:
             progress(event, task, row, dict(counts))
 
-    def report_row(task, row, ran=True):
-        rows[task["name"]] = row
-        counts["done"] += 1
-        counts["running"] -= ran
-        counts["failed"] += row["status"] not in CERTIFIED
-        now = time.monotonic()
-        if now - last_summary[0] > 2.0 or counts["done"] == counts["total"]:
-            write_summary(out_dir, summary_rows())     # kept current, without rewriting it per mesh
-            last_summary[0] = now
-        notify("done", task, row)
-
+    recorder = _Recorder(out_dir, tasks, notify)
     todo = []
     for task in tasks:
         row = None if force else finished_row(task)
         if row is None:
             todo.append(task)
         else:
-            report_row(task, row, ran=False)
+            recorder.resumed(task, row)
     try:
         if client is not None:
-            _run_dask(todo, client, retries, report_row, notify)
+            _run_dask(todo, client, retries, recorder, notify)
         else:
             jobs = usable_cores() if jobs is None else jobs
             jobs = min(jobs, len(todo))
             if jobs <= 1:
-                _run_sequential(todo, report_row, notify)
+                _run_sequential(todo, recorder, notify)
             else:
                 budget = MEMORY_BUDGET_SHARE * available_memory_mb()
-                _run_local(todo, jobs, budget, report_row, notify)
+                _run_local(todo, jobs, budget, recorder, notify)
+        recorder.flush()
+    except BaseException:
+        recorder.discard()          # finished meshes not yet in place: dropped, nothing more written
+        raise
     finally:
-        if rows:
-            write_summary(out_dir, summary_rows())
         _remove(_temporary_files(out_dir, tasks))
-    return summary_rows()
+    return recorder.summary_rows()
+
+
+def check_outputs(tasks, inputs, start=None):
+    """UsageError if an output of the batch would replace one of its inputs (or the start sphere)."""
+    from .commands import same_file
+
+    sources = [("an input", path) for path in inputs] + ([("the --start sphere", start)] if start else [])
+    names = ["summary.csv", "summary.md"] + [name for task in tasks for name in task["outputs"].values()]
+    out_dir = Path(tasks[0]["out_dir"]) if tasks else None
+    for name in names:
+        for what, source in sources:
+            if same_file(out_dir / name, source):
+                raise errors.UsageError("the output %s would replace %s, %s: choose another --out folder"
+                                        % (out_dir / name, what, source))
 
 
 # ------------------------------------------------------------------------------ command line
@@ -907,19 +1038,19 @@ class BatchProgress:
             self.ran += 1
         done = "[%d/%d]" % (counts["done"], counts["total"])
         if row["status"] not in CERTIFIED:
-            self.say("batch: %s %s: %s: %s" % (done, row["mesh"], row["status"], row["reason"]))
+            self.say("%s: %s %s: %s: %s" % (PROG, done, row["mesh"], row["status"], row["reason"]))
         elif not self.tty:
             what = ("already done" if row["resumed"] else "%s, %s vertices, %.1f s"
                     % (row["status"], row["vertices"], row["time_s"]))
-            self.say("batch: %s %s: %s%s" % (done, row["mesh"], what, self.eta(counts)))
+            self.say("%s: %s %s: %s%s" % (PROG, done, row["mesh"], what, self.eta(counts)))
         if self.tty:
             self.status_line(counts)
 
     def status_line(self, counts):
         if self.quiet:
             return
-        self.stream.write("\r\033[Kbatch: %d/%d done, %d failed, %d running%s"
-                          % (counts["done"], counts["total"], counts["failed"], counts["running"],
+        self.stream.write("\r\033[K%s: %d/%d done, %d failed, %d running%s"
+                          % (PROG, counts["done"], counts["total"], counts["failed"], counts["running"],
                              self.eta(counts)))
         self.stream.flush()
         self.pending = True
@@ -931,17 +1062,22 @@ class BatchProgress:
             self.pending = False
 
 
+PROG = "sphere-nlp batch"
+
+
 def build_parser():
-    parser = argparse.ArgumentParser(
-        prog="sphere-nlp batch",
+    from .commands import subcommand_parser
+
+    parser = subcommand_parser(
+        "batch",
         description="Map many meshes onto the sphere with the same options. DIR receives per mesh its "
                     "certified sphere NAME.sphere.off and NAME.report.json, and summary.csv and summary.md. "
                     "A failing mesh is recorded and the batch goes on; a rerun skips the meshes already "
-                    "done. Exit status: 0 all certified, 1 some failed, 2 bad usage.",
+                    "done. Exit status: 0 all certified, 1 some failed, 2 bad usage, 130 / 143 "
+                    "interrupted (workers stopped; the summary lists exactly the meshes in DIR).",
         epilog="examples:\n  sphere-nlp batch meshes/ --out spheres\n"
                "  sphere-nlp batch 'data/**/*.obj' @more.txt --out spheres --jobs 2 --png\n"
-               "  sphere-nlp batch meshes/ --out /shared/spheres --scheduler tcp://head:8786\n",
-        formatter_class=argparse.RawDescriptionHelpFormatter)
+               "  sphere-nlp batch meshes/ --out /shared/spheres --scheduler tcp://head:8786\n")
     parser.add_argument("inputs", nargs="+", metavar="INPUT",
                         help="mesh files, folders (their .off/.obj/.ply/.stl files), glob patterns "
                              "('data/**/*.obj', quoted) or @list.txt (one input a line)")
@@ -963,8 +1099,10 @@ def build_parser():
                         help="start every mesh from this sphere (meshes sharing its triangles, e.g. subjects "
                              "on one template); area modes then skip their walk where it is near")
     limits = parser.add_argument_group("solver limits, per mesh")
-    limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit per stage")
-    limits.add_argument("--max-time", type=float, metavar="S", help="wall-clock limit per IPOPT stage, seconds")
+    limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit of each stage (>= 1)")
+    limits.add_argument("--max-time", type=float, metavar="S",
+                        help="wall-clock limit of each mesh's whole run, seconds (> 0; as for a single mesh: "
+                             "every IPOPT stage of that mesh stops at its first iteration past it)")
     limits.add_argument("--on-limit", choices=ON_LIMIT, default="fail",
                         help="at a limit: fail the mesh (default), or project and write a certified, not "
                              "optimal, sphere")
@@ -977,67 +1115,89 @@ def build_parser():
                           "must see the inputs and DIR at the same paths")
     run.add_argument("--retries", type=int, default=1, metavar="N",
                      help="with --scheduler, Dask retries of a task that raised (default 1)")
-    run.add_argument("-q", "--quiet", action="store_true", help="print only usage errors")
-    run.add_argument("--debug", action="store_true", help="show tracebacks")
+    run.add_argument("-q", "--quiet", action="store_true", help="print only errors")
     return parser
+
+
+def check_arguments(args):
+    """Every option value, input and output of ``sphere-nlp batch`` (UsageError), before anything runs."""
+    from .api import check_run_options
+
+    if args.jobs is not None and args.jobs < 1:
+        raise errors.UsageError("--jobs must be at least 1, not %d" % args.jobs)
+    if args.scheduler and args.jobs is not None:
+        raise errors.UsageError("--jobs is for local runs; with --scheduler the cluster's workers "
+                                "decide how many meshes run at a time")
+    if args.retries < 0:
+        raise errors.UsageError("--retries must be 0 or more, not %d" % args.retries)
+    try:
+        check_run_options(args.target, args.formulation, args.on_limit, args.max_iter, args.max_time,
+                          args.angle_weight, args.area_weight)
+    except errors.UsageError as exc:           # the API's words for the options' values
+        raise errors.UsageError(re.sub(r"\b(angle_weight|area_weight|max_iter|max_time)\b",
+                                       lambda m: "--" + m.group(1).replace("_", "-"), str(exc))) from None
+    out_dir = Path(args.out)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise errors.UsageError("cannot write to --out %s: it is a file, not a folder" % out_dir)
+    paths = expand_inputs(args.inputs, exclude=out_dir)
+    output_names(paths)                       # a clash of names is found before anything is said
+    start = None
+    if args.start:
+        start = os.path.abspath(args.start)
+        try:
+            load_mesh(start)
+        except errors.MeshInputError as exc:
+            raise errors.UsageError("--start: %s" % exc) from None
+    options = dict.fromkeys(("target", "formulation"), None)
+    options.update(target=args.target, formulation=args.formulation)
+    check_outputs(plan(paths, Path(os.path.abspath(out_dir)), options, png=args.png, output_format=args.format),
+                  paths, start)
+    from .commands import check_output_folder
+    check_output_folder("--out", out_dir)
+    return paths
 
 
 def main(argv=None):
     """``sphere-nlp batch INPUT... --out DIR [options]``; the exit status."""
+    from .commands import SafeStream, run_subcommand
+
     parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exit_:
-        return int(exit_.code or 0)
-    progress = BatchProgress(quiet=args.quiet)
-    client = None
-    try:
-        if args.jobs is not None and args.jobs < 1:
-            raise errors.UsageError("--jobs must be at least 1, not %d" % args.jobs)
-        if args.scheduler and args.jobs is not None:
-            raise errors.UsageError("--jobs is for local runs; with --scheduler the cluster's workers "
-                                    "decide how many meshes run at a time")
-        if args.retries < 0:
-            raise errors.UsageError("--retries must be 0 or more, not %d" % args.retries)
-        out_dir = Path(args.out)
-        paths = expand_inputs(args.inputs, exclude=out_dir)
-        output_names(paths)                       # a clash of names is found before anything is said
-        if args.scheduler:
-            client = _load_client(args.scheduler)
-            where = "on the Dask cluster at %s" % args.scheduler
-        else:
-            jobs = min(args.jobs or usable_cores(), len(paths))
-            where = "up to %d at a time" % jobs if jobs > 1 else "one at a time"
-        progress.say("batch: %d mesh(es), target %s, %s -> %s" % (len(paths), args.target, where, out_dir))
-        rows = map_meshes(paths, out_dir, target=args.target, angle_weight=args.angle_weight,
-                          area_weight=args.area_weight, formulation=args.formulation,
-                          max_iter=args.max_iter, max_time=args.max_time, on_limit=args.on_limit,
-                          output_format=args.format, png=args.png, png_measure=args.png_measure,
-                          force=args.force, jobs=args.jobs, client=client, retries=args.retries,
-                          progress=progress, start=args.start)
-    except errors.SphereNLPError as exc:
-        progress.finish_line()
-        if args.debug:
-            import traceback
-            traceback.print_exc()
-        print("sphere_nlp batch: error: %s" % exc, file=sys.stderr)
-        return exc.exit_status
-    except KeyboardInterrupt:
-        progress.finish_line()
-        print("sphere_nlp batch: interrupted; the meshes done so far are in %s (summary.csv); run the "
-              "same command again to go on" % args.out, file=sys.stderr)
-        return 130
-    except OSError as exc:
-        progress.finish_line()
-        print("sphere_nlp batch: error: cannot write to %s: %s" % (args.out, exc.strerror or exc),
-              file=sys.stderr)
-        return 1
-    finally:
-        if client is not None:
-            client.close()
-    progress.finish_line()
-    failed = [row for row in rows if row["status"] not in CERTIFIED]
-    resumed = sum(bool(row["resumed"]) for row in rows)
-    progress.say("batch: %d certified (%d already done), %d failed; summary in %s"
-                 % (len(rows) - len(failed), resumed, len(failed), Path(args.out) / "summary.md"))
-    return 1 if failed else 0
+    stderr = SafeStream(sys.stderr)
+
+    def check(args):
+        args.paths = check_arguments(args)
+
+    def body(args, say):
+        progress = BatchProgress(quiet=args.quiet, stream=stderr)
+        client = None
+        try:
+            if args.scheduler:
+                client = _load_client(args.scheduler)
+                where = "on the Dask cluster at %s" % args.scheduler
+            else:
+                jobs = min(args.jobs or usable_cores(), len(args.paths))
+                where = "up to %d at a time" % jobs if jobs > 1 else "one at a time"
+            say("%d mesh(es), target %s, %s -> %s" % (len(args.paths), args.target, where, args.out))
+            try:
+                rows = map_meshes(args.paths, args.out, target=args.target, angle_weight=args.angle_weight,
+                                  area_weight=args.area_weight, formulation=args.formulation,
+                                  max_iter=args.max_iter, max_time=args.max_time, on_limit=args.on_limit,
+                                  output_format=args.format, png=args.png, png_measure=args.png_measure,
+                                  force=args.force, jobs=args.jobs, client=client, retries=args.retries,
+                                  progress=progress, start=args.start)
+            finally:
+                progress.finish_line()
+        finally:
+            if client is not None:
+                client.close()
+        failed = [row for row in rows if row["status"] not in CERTIFIED]
+        resumed = sum(bool(row["resumed"]) for row in rows)
+        say("%d certified (%d already done), %d failed; summary in %s"
+            % (len(rows) - len(failed), resumed, len(failed), Path(args.out) / "summary.md"))
+        return 1 if failed else 0
+
+    def interrupted(args):
+        return ("every worker stopped; the meshes done so far are in %s, listed in its summary.csv; run the "
+                "same command again to go on" % args.out)
+
+    return run_subcommand(parser, argv, body, check=check, interrupted=interrupted)

@@ -1,26 +1,30 @@
-"""Command line: ``python -m sphere_nlp INPUT [options]`` (a thin layer over :func:`parameterize`).
+"""Command line: ``sphere-nlp INPUT [options]`` (a thin layer over :func:`parameterize`) and
+``sphere-nlp COMMAND ...`` for the subcommands of :data:`sphere_nlp.commands.SUBCOMMANDS`.
 
 Exit status: 0 a certified sphere was written; 1 the solve or the certificate failed (nothing
-written); 2 bad input or bad usage, found before any solving (nothing written); 130 / 143 ended by
-SIGINT / SIGTERM (nothing written or replaced). All outputs of a run are renamed into place together,
-only after everything succeeded (:func:`sphere_nlp.mesh_io.output_transaction`).
+written but ``--report``); 2 bad input or bad usage, found before any solving (nothing written);
+130 / 143 ended by SIGINT / SIGTERM at any moment, start-up included (nothing written or replaced).
+All outputs of a run are renamed into place together, only after everything succeeded
+(:func:`sphere_nlp.mesh_io.output_transaction`).
+
+Only light modules are imported here: the console script imports this module before :func:`main`
+takes over the signals (:func:`sphere_nlp.interrupts.program_started`), so numpy, CasADi and
+trimesh load afterwards.
 """
 
 import argparse
 import math
 import os
+import re
 import signal
 import sys
-import tempfile
 import time
 import traceback
 from pathlib import Path
 
 from . import __version__, errors, interrupts
-from .mesh_io import check_mesh_path, output_transaction
-from .nlp import FORMULATIONS
-from .solve import ON_LIMIT
-from .targets import CORNER_WEIGHTINGS, MODES
+from .commands import (PROG, SUBCOMMANDS, SafeStream, UsageParser, check_output_paths as _check_paths,
+                       subcommand_lines, subcommand_main, unknown_command)
 
 # Three runnable examples (tests/test_ux.py runs each of them).
 EXAMPLES = """examples:
@@ -30,23 +34,17 @@ EXAMPLES = """examples:
 """
 
 
-PROG = "sphere-nlp"
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse with its errors raised as UsageError: one line, the tool's own prefix."""
-
-    def error(self, message):
-        raise errors.UsageError("%s (see %s --help)" % (message, self.prog))
-
-
 def build_parser():
-    parser = _Parser(
+    from .nlp import FORMULATIONS
+    from .solve import ON_LIMIT
+    from .targets import CORNER_WEIGHTINGS, MODES
+
+    parser = UsageParser(
         prog=PROG,
+        usage="%(prog)s INPUT [options]\n       %(prog)s COMMAND ... (see below; COMMAND --help for each)",
         description="Map a closed genus-0 triangle mesh onto the unit sphere without overlaps\n"
-                    "(Sheffer, Gotsman & Dyn 2004), certified before anything is written.\n"
-                    "`sphere-nlp reproduce fig3 --out DIR` redraws the paper's Fig. 3;\n"
-                    "`sphere-nlp compare MESH... --out DIR` compares sphere_nlp with the baselines.",
+                    "(Sheffer, Gotsman & Dyn 2004), certified before anything is written.\n\n"
+                    "commands:\n" + subcommand_lines(),
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("input", help="input mesh (OFF, OBJ, PLY, STL, anything trimesh reads)")
     parser.add_argument("--version", action="version", version="sphere-nlp " + __version__)
@@ -60,8 +58,8 @@ def build_parser():
                      help="colouring of the picture: log area ratio or angle distortion (default: the "
                           "one the target mode does not optimise)")
     out.add_argument("--view", metavar="AZ,EL", type=_view,
-                     help="camera azimuth and elevation of the picture, degrees (default: the side "
-                          "with the most projected area)")
+                     help="camera azimuth and elevation of the picture, degrees, e.g. --view -60,20 "
+                          "(default: the side with the most projected area)")
     out.add_argument("--up", choices=("x", "y", "z", "+x", "+y", "+z", "-x", "-y", "-z"), metavar="AXIS",
                      help="the input's up axis in the picture: x, y, z, or --up=-z (default: detected)")
     out.add_argument("--textured-input", metavar="OUT.obj",
@@ -97,10 +95,10 @@ def build_parser():
     limits = parser.add_argument_group("solver limits (reaching one is a failure, unless --on-limit project)")
     limits.add_argument("--max-iter", type=int, metavar="N", help="IPOPT iteration limit per stage (>= 1)")
     limits.add_argument("--max-time", type=_seconds, metavar="S",
-                        help="wall-clock limit of the whole run, seconds (> 0; the solve stops at its first "
-                             "IPOPT iteration past it). The area modes have a budget by default (1.5 ms a "
-                             "vertex, at least 10 s) for their authalic map and its polish; 'none' lets the "
-                             "polish run to IPOPT's optimum")
+                        help="wall-clock limit of the whole run from the start of the process, seconds (> 0; "
+                             "the start map is cut short and IPOPT stops at its first iteration past it). "
+                             "The area modes have a budget by default (1.5 ms a vertex, at least 10 s) for "
+                             "their authalic map and its polish; 'none' lets the polish run to IPOPT's optimum")
     limits.add_argument("--on-limit", choices=ON_LIMIT, default="fail",
                         help="when the main stage reaches a limit: fail (default), or project its last "
                              "iterate onto the constraints and write that certified, not optimal, sphere")
@@ -265,46 +263,33 @@ def default_output(input_path):
     return Path(Path(input_path).stem + ".sphere.off")
 
 
-def _same_file(a, b):
-    """Whether two paths name one file (the same path, or links to one existing file)."""
-    if os.path.abspath(a) == os.path.abspath(b):
-        return True
-    try:
-        return os.path.realpath(a) == os.path.realpath(b) or os.path.samefile(a, b)
-    except OSError:
-        return False
-
-
 def check_output_paths(input_path, outputs):
-    """Raise UsageError unless every output can be written, before anything is solved.
+    """Raise UsageError unless every output can be written, before anything is solved
+    (:func:`sphere_nlp.commands.check_output_paths` with the input mesh as the one input)."""
+    _check_paths([("the input file", input_path)], outputs)
 
-    ``outputs`` is a list of (option, path). Each must differ from the input and from the others,
-    must not be a folder, and its folder must exist and take a new file of that name: a temporary
-    file named as :func:`~sphere_nlp.mesh_io.atomic_output` names it is created there and removed,
-    which also catches read-only folders and names too long.
+
+# Options whose value may start with "-" (a negative azimuth): argparse would take "-60,20" for an
+# option, so "--view -60,20" becomes "--view=-60,20" before parsing.
+NEGATIVE_VALUE_OPTIONS = ("--view",)
+_NUMBERS = re.compile(r"-[0-9.]+(e[-+]?[0-9]+)?(,[-+]?[0-9.]+(e[-+]?[0-9]+)?)*", re.I)
+
+
+def join_negative_values(argv):
+    """``argv`` with ``--view -60,20`` written ``--view=-60,20`` (see NEGATIVE_VALUE_OPTIONS).
+
+    >>> join_negative_values(["m.off", "--view", "-60,20", "-q"])
+    ['m.off', '--view=-60,20', '-q']
     """
-    for k, (option, path) in enumerate(outputs):
-        if _same_file(path, input_path):
-            raise errors.UsageError("%s %s is the input file: choose another name (the input is never "
-                                    "replaced)" % (option, path))
-        for other_option, other in outputs[:k]:
-            if _same_file(path, other):
-                raise errors.UsageError("%s and %s both name %s: each output needs its own file"
-                                        % (other_option, option, path))
-        path = Path(path)
-        folder = path.parent if str(path.parent) else Path(".")
-        try:
-            if path.is_dir():
-                raise errors.UsageError("cannot write %s %s: it is a folder" % (option, path))
-            if not folder.is_dir():
-                raise errors.UsageError("cannot write %s %s: %s" % (
-                    option, path, "no such folder %s" % folder if not folder.exists()
-                    else "%s is not a folder" % folder))
-            fd, probe = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".tmp", dir=folder)
-            os.close(fd)
-            os.unlink(probe)
-        except OSError as exc:
-            raise errors.UsageError("cannot write %s %s: %s" % (option, path, exc.strerror or exc)) from None
+    joined, k = [], 0
+    while k < len(argv):
+        if argv[k] in NEGATIVE_VALUE_OPTIONS and k + 1 < len(argv) and _NUMBERS.fullmatch(argv[k + 1]):
+            joined.append("%s=%s" % (argv[k], argv[k + 1]))
+            k += 2
+        else:
+            joined.append(argv[k])
+            k += 1
+    return joined
 
 
 def _seconds(text):
@@ -344,9 +329,39 @@ def check_arguments(args):
                                 .replace("max_time", "--max-time")) from None
 
 
+def failure_line(result, report=None):
+    """The line of a run that wrote no sphere: why, what IPOPT's iteration count counts, and what
+    was written (nothing, or only the report)."""
+    from .nlp import status_kind
+
+    stages = result.stages or []
+
+    def iterations(n):
+        return "%d iteration%s" % (n, "" if n == 1 else "s")
+
+    if len(stages) > 1:
+        count = ("IPOPT status %s in stage %s after %s; %s over %d stages in all, --max-iter limits each "
+                 "stage" % (result.status, stages[-1]["name"], iterations(stages[-1]["iterations"]),
+                            iterations(result.iterations), len(stages)))
+    else:
+        count = "IPOPT status %s after %s" % (result.status, iterations(result.iterations))
+    if result.status == "Maximum_WallTime_Exceeded" and result.iterations == 0:
+        count += "; the time limit was reached before IPOPT's first iteration"
+    if not result.solved:
+        if status_kind(result.status) == "solved":
+            # IPOPT converged, but to angles that break a constraint of (3)-(8).
+            why = ("the angle solve ended outside the constraints: a zero or negative angle or excess, or "
+                   "an equality residual above 1e-8 (%s)" % count)
+        else:
+            why = "the angle solve failed (%s)" % count
+    else:
+        why = "the sphere failed its certificate (%s; %s)" % (result.certificate.reason, count)
+    return why + ("; nothing written but the report %s" % report if report else "; nothing written")
+
+
 def run(args, progress):
-    from .api import parameterize, solve_failure_message
-    from .mesh_io import load_mesh
+    from .api import parameterize
+    from .mesh_io import check_mesh_path, load_mesh, output_transaction
 
     input_path = Path(args.input)
     output = Path(args.output) if args.output else default_output(input_path)
@@ -368,9 +383,10 @@ def run(args, progress):
                 ([output] if is_obj else []) + ([Path(args.textured_input)] if args.textured_input else [])
                 if args.texture}
     outputs += [("--texture", path) for path in sorted(textures)]
-    check_output_paths(input_path, outputs)
+    _check_paths([("the input file", input_path), ("the --start sphere", args.start)], outputs)
 
     def on_stage(name):
+        interrupts.raise_if_interrupted()      # a signal a library caught ends the run here
         # Announced once the mesh has been read and validated, so bad input gets only its error line.
         if name == "solve":
             progress.say("sphere-nlp: mapping %s (target %s)" % (input_path, args.target))
@@ -385,23 +401,25 @@ def run(args, progress):
             start, _ = load_mesh(args.start)
         except errors.MeshInputError as exc:
             raise errors.UsageError("--start: %s" % exc) from None
-    result = parameterize(str(input_path), target=args.target, angle_weight=args.angle_weight,
-                          area_weight=args.area_weight, formulation=args.formulation,
-                          corner_weighting=args.corner_weighting, corner_floor=args.corner_floor,
-                          area_floor=args.area_floor,
-                          max_iter=args.max_iter, max_time=_max_time(args), on_limit=args.on_limit,
-                          progress=progress.iteration,
-                          on_stage=on_stage, start=start, check=False)
+    # --max-time counts from the start of the process: imports, reading and the start map included.
+    seconds = None if args.max_time in (None, "none") else args.max_time
+    remaining = None if seconds is None else seconds - interrupts.program_elapsed()
+    with interrupts.deadline(remaining):
+        result = parameterize(str(input_path), target=args.target, angle_weight=args.angle_weight,
+                              area_weight=args.area_weight, formulation=args.formulation,
+                              corner_weighting=args.corner_weighting, corner_floor=args.corner_floor,
+                              area_floor=args.area_floor,
+                              max_iter=args.max_iter, max_time=_max_time(args), on_limit=args.on_limit,
+                              progress=progress.iteration,
+                              on_stage=on_stage, start=start, check=False)
     for repair in result.repairs:
         progress.say("repaired: " + repair)
     if not result.success:
         if args.report:
-            result.write_report(args.report)
-        if not result.solved:
-            raise errors.SolveError(solve_failure_message(result.status, result.iterations)
-                                    + "; nothing written")
-        raise errors.CertificateError("the sphere failed its certificate (%s; IPOPT status %s); nothing "
-                                      "written" % (result.certificate.reason, result.status))
+            with output_transaction():
+                result.write_report(args.report)
+        error = errors.SolveError if not result.solved else errors.CertificateError
+        raise error(failure_line(result, args.report))
     progress.stage("write")
     _write_hook("start")
     # All outputs are staged as temporary files and renamed into place together at the end.
@@ -437,147 +455,71 @@ def _write_hook(moment):
         time.sleep(float(spec.partition(":")[2] or 5))
 
 
-class _SafeStream:
-    """stderr that never fails the run: a closed or broken stream (``2>&-``, a closed pipe) just
-    loses the message."""
-
-    def __init__(self, stream):
-        self.stream = stream
-
-    def write(self, text):
-        try:
-            if self.stream is not None:
-                self.stream.write(text)
-        except (OSError, ValueError):           # closed, broken pipe, full disk
-            self.stream = None
-
-    def flush(self):
-        try:
-            if self.stream is not None:
-                self.stream.flush()
-        except (OSError, ValueError):
-            self.stream = None
-
-    def isatty(self):
-        try:
-            return self.stream is not None and self.stream.isatty()
-        except (OSError, ValueError):
-            return False
-
-
-def subcommand_parser(name, description):
-    """The argument parser of ``sphere-nlp NAME``: its usage errors are one line (see :func:`run_subcommand`)."""
-    return _Parser(prog="%s %s" % (PROG, name), description=description)
-
-
-def run_subcommand(parser, argv, body, interrupted="nothing more written"):
-    """Run a subcommand with the main command's contract; its exit status.
-
-    ``body(args, say)`` does the work and returns the exit status; ``say(line)`` prints a progress
-    line unless ``-q``. Bad usage and input (:class:`~sphere_nlp.errors.SphereNLPError`) and file
-    system errors end it with one line ``PROG: error: ...`` (exit 2 for usage, input and files);
-    SIGINT / SIGTERM with one line saying ``interrupted`` and what was left (``interrupted``, a
-    string or a function of ``args``), exit 130 / 143; anything else with one "internal error" line.
-    """
-    stderr = _SafeStream(sys.stderr)
-    prog = parser.prog
-    try:
-        args = parser.parse_args(argv)
-    except errors.UsageError as exc:
-        stderr.write("%s: error: %s\n" % (prog, exc))
-        return exc.exit_status
-    except SystemExit as exit_:        # --help
-        return int(exit_.code or 0)
-
-    def say(line):
-        if not getattr(args, "quiet", False):
-            stderr.write("%s: %s\n" % (prog, line))
-            stderr.flush()
-
-    try:
-        with interrupts.handled_signals():
-            return body(args, say)
-    except errors.SphereNLPError as exc:
-        stderr.write("%s: error: %s\n" % (prog, exc))
-        return exc.exit_status
-    except OSError as exc:
-        where = "%s: " % exc.filename if getattr(exc, "filename", None) else ""
-        stderr.write("%s: error: %s%s\n" % (prog, where, exc.strerror or exc))
-        return 2
-    except KeyboardInterrupt as exc:
-        signum = getattr(exc, "signum", signal.SIGINT)
-        left = interrupted(args) if callable(interrupted) else interrupted
-        stderr.write("%s: interrupted; %s (%s)\n" % (prog, left, signal.Signals(signum).name))
-        return 128 + signum
-    except MemoryError:
-        stderr.write("%s: error: out of memory\n" % prog)
-        return 1
-    except Exception as exc:  # a bug: still one line
-        stderr.write("%s: internal error: %s: %s\n" % (prog, type(exc).__name__, exc))
-        return 1
-
-
 def main(argv=None):
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["reproduce"]:      # `python -m sphere_nlp reproduce fig3 --out DIR`
-        from .reproduce import main as reproduce_main
+    """``sphere-nlp INPUT [options]`` or ``sphere-nlp COMMAND ...``; the exit status.
 
-        return reproduce_main(argv[1:])
-    if argv[:1] == ["compare"]:        # `python -m sphere_nlp compare MESH... --out DIR`
-        from .compare import main as compare_main
-
-        return compare_main(argv[1:])
-    if argv[:1] == ["resample"]:       # `python -m sphere_nlp resample MESH --icosphere 5 -o OUT`
-        from .resample import resample_main
-
-        return resample_main(argv[1:])
-    if argv[:1] == ["morph"]:          # `python -m sphere_nlp morph A B --frames 30 --out DIR`
-        from .resample import morph_main
-
-        return morph_main(argv[1:])
-    if argv[:1] == ["transfer"]:       # `python -m sphere_nlp transfer A B --values V.npy -o OUT.npy`
-        from .resample import transfer_main
-
-        return transfer_main(argv[1:])
-    if argv[:1] == ["batch"]:          # `python -m sphere_nlp batch INPUT... --out DIR`
-        from .batch import main as batch_main
-
-        return batch_main(argv[1:])
-    stderr = _SafeStream(sys.stderr)
-    parser = build_parser()
+    Without ``argv`` (the console script) the process's signal handling starts here, before anything
+    heavy is imported (:func:`sphere_nlp.interrupts.program_started`).
+    """
+    if argv is None:
+        interrupts.program_started()
+        try:
+            return main(sys.argv[1:])
+        finally:
+            interrupts.program_finished()
+    argv = list(argv)
+    stderr = SafeStream(sys.stderr)
+    if argv[:1] and argv[0] in SUBCOMMANDS:          # sphere-nlp resample MESH --icosphere 5 -o OUT
+        interrupts.name_program("%s %s" % (PROG, argv[0]))
+        return subcommand_main(argv[0])(argv[1:])
+    unknown = unknown_command(argv[0]) if argv else None
+    if unknown is not None:
+        stderr.write("%s: error: %s\n" % (PROG, unknown))
+        return unknown.exit_status
     try:
-        args = parser.parse_args(argv)
+        parser = build_parser()
+        args = parser.parse_args(join_negative_values(argv))
     except errors.UsageError as exc:
         stderr.write("%s: error: %s\n" % (PROG, exc))
         return exc.exit_status
     except SystemExit as exit_:        # --help
         return int(exit_.code or 0)
+    from . import api  # noqa: F401  (loaded before the run takes the signals over: see interrupts)
+
     # Without a time limit, a long stage gets a note on how to bound it (see LONG_STAGE_S).
     progress = Progress(quiet=args.quiet, stream=stderr,
                         long_stage_s=LONG_STAGE_S if args.max_time is None else None)
+
+    def interrupted(signum):
+        stderr.write("%s: interrupted; nothing written (%s)\n" % (PROG, signal.Signals(signum).name))
+        return 128 + signum
+
     try:
         with interrupts.handled_signals():
             try:
                 try:
-                    return run(args, progress)
+                    status = run(args, progress)
                 except errors.MeshInputError:
                     progress.clear_line()       # bad input: the error is the only line
                     raise
                 finally:
                     progress.finish_line()      # an error message gets a line of its own
+                if interrupts.pending_signal() is not None and not interrupts.is_committed():
+                    raise interrupts.Interrupted(interrupts.pending_signal())   # one a library caught
             except errors.SphereNLPError as exc:
                 if args.debug:
                     traceback.print_exc()
                 stderr.write("%s: error: %s\n" % (PROG, exc))
                 return exc.exit_status
+            return status
     except KeyboardInterrupt as exc:
-        signum = getattr(exc, "signum", signal.SIGINT)
-        stderr.write("%s: interrupted; nothing written (%s)\n" % (PROG, signal.Signals(signum).name))
-        return 128 + signum
+        return interrupted(getattr(exc, "signum", signal.SIGINT))
     except MemoryError:
         stderr.write("%s: error: out of memory; nothing written\n" % PROG)
         return 1
     except Exception as exc:  # a bug: still one line unless --debug
+        if interrupts.program_signal() is not None:     # a signal broke a library (an import, say)
+            return interrupted(interrupts.program_signal())
         if args.debug:
             traceback.print_exc()
         stderr.write("%s: internal error: %s: %s; nothing written (rerun with --debug for a traceback)\n"

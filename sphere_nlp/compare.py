@@ -14,10 +14,12 @@ Methods: ``sphere_nlp:<mode>`` for the four target modes (``sphere_nlp`` selects
 for every one. By default :data:`DEFAULT_METHODS`: sphere_nlp's conformal mode against the two conformal
 baselines, seconds per mesh (the area modes and Alexa's relaxation take minutes on large meshes).
 
-Exit status: 0 all rows written (whatever their validity); 2 an unknown method or an output folder that
-cannot be written (nothing run), or a mesh was rejected (the others ran).
+Exit status: 0 all rows written (whatever their validity); 2 an unknown method, a bad option value, an
+output folder that cannot be written or an output that would replace an input (nothing run), or a mesh
+was rejected (the others ran); 130 / 143 interrupted (the rows done so far are kept).
 """
 
+import math
 import sys
 import time
 from pathlib import Path
@@ -274,9 +276,10 @@ def compare(paths, out_dir, methods=DEFAULT_METHODS, max_time=None, progress=Non
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = [{"mesh": name, "method": REJECTED_METHOD, "valid": False, "status": "rejected: " + message}
             for name, message in rejected]
-    for _, message in rejected:
-        if progress:
+    if progress:
+        for _, message in rejected:
             progress("skipping %s" % message)
+        progress("%d mesh(es) x %d method(s) -> %s" % (len(meshes), len(methods), out_dir))
     for name, mesh, prepared in meshes:
         for method in methods:
             kept = {}
@@ -294,9 +297,19 @@ def compare(paths, out_dir, methods=DEFAULT_METHODS, max_time=None, progress=Non
     return rows
 
 
+def output_files(paths, methods, out_dir, save_maps=False):
+    """The files ``compare`` may write into ``out_dir`` (for checking them against the inputs)."""
+    out_dir = Path(out_dir)
+    names = ["compare.json", "compare.md"]
+    if save_maps:
+        names += ["%s.%s.%s" % (Path(p).stem, m.replace(":", "-"), ext) for p in paths for m in methods
+                  for ext in ("obj", "png")]
+    return [out_dir / name for name in names]
+
+
 def main(argv=None):
     """``python -m sphere_nlp compare MESH... --out DIR [--methods ...] [--max-time S]``."""
-    from .cli import run_subcommand, subcommand_parser
+    from .commands import check_output_folder, check_output_paths, run_subcommand, subcommand_parser
 
     parser = subcommand_parser(
         "compare",
@@ -315,10 +328,18 @@ def main(argv=None):
                         help="wall-clock limit of each sphere_nlp run")
     parser.add_argument("-q", "--quiet", action="store_true", help="print only errors")
 
+    def check(args):
+        args.method_list = parse_methods(args.methods)
+        if args.max_time is not None and not (math.isfinite(args.max_time) and args.max_time > 0):
+            raise errors.UsageError("--max-time must be a finite number of seconds > 0, not %s" % args.max_time)
+        check_output_folder("--out", args.out)
+        if Path(args.out).is_dir():
+            outputs = output_files(args.meshes, args.method_list, args.out, args.save_maps)
+            check_output_paths([("an input mesh", path) for path in args.meshes],
+                               [("--out", path) for path in outputs])
+
     def body(args, say):
-        methods = parse_methods(args.methods)
-        say("%d mesh(es) x %d method(s) -> %s" % (len(args.meshes), len(methods), args.out))
-        rows = compare(args.meshes, args.out, methods=methods, max_time=args.max_time, progress=say,
+        rows = compare(args.meshes, args.out, methods=args.method_list, max_time=args.max_time, progress=say,
                        save_maps=args.save_maps)
         say("wrote %s and %s (%d rows, %d valid)" % (Path(args.out) / "compare.json", Path(args.out) / "compare.md",
                                                      len(rows), sum(bool(r["valid"]) for r in rows)))
@@ -327,5 +348,5 @@ def main(argv=None):
             print("sphere-nlp compare: error: %s (skipped)" % row["status"].split(": ", 1)[1], file=sys.stderr)
         return 2 if rejected else 0
 
-    return run_subcommand(parser, argv, body,
+    return run_subcommand(parser, argv, body, check=check,
                           interrupted=lambda args: "the rows done so far are in %s" % args.out)

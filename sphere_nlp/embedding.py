@@ -20,6 +20,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from . import interrupts
+
 
 def _rot90(v):
     return np.stack([-v[..., 1], v[..., 0]], axis=-1)
@@ -291,6 +293,8 @@ def excess_gauge(positions, faces, max_iter=50, tol=1e-4):
         return X
     f = e @ e
     for _ in range(max_iter):
+        if interrupts.deadline_passed():        # the run's time is up: any step so far is valid
+            break
         centres = X[faces].sum(1)
         centres /= np.linalg.norm(centres, axis=1, keepdims=True)
         g = (e * e) @ centres / f

@@ -5,9 +5,11 @@ failure or Ctrl-C never leaves a partial file, and an existing file is replaced 
 """
 
 import codecs
+import io
 import json
 import os
 import tempfile
+from array import array
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -108,15 +110,32 @@ def _check_header(path, suffix):
         if not head.startswith(b"ply"):
             raise errors.UnreadableMeshError("cannot read %s: not a PLY file (it does not start with 'ply')"
                                              % path)
-        if head.find(b"end_header") < 0:
+        end = head.find(b"end_header")
+        if end < 0:
             raise errors.UnreadableMeshError("cannot read %s as a mesh: the PLY header has no end_header "
                                              "(in its first %d KB)" % (path, HEADER_BYTES >> 10))
+        if b"format ascii" in head[:end]:
+            # The body's first line must be numbers: text that is not a PLY body is refused here,
+            # before trimesh reads the whole file.
+            after = head[end:].split(b"\n", 1)
+            first = next((line for line in (after[1] if len(after) > 1 else b"").split(b"\n")
+                          if line.strip()), b"")
+            try:
+                [float(word) for word in first.split()]
+            except ValueError:
+                raise errors.UnreadableMeshError("cannot read %s: not a PLY file (the first line after its "
+                                                 "ASCII header is not numbers)" % path) from None
     elif suffix == ".stl":
         # Binary STL: an 80-byte header, a triangle count, 50 bytes per triangle; ASCII STL: "solid".
         binary_ok = size >= 84 and size == 84 + 50 * int.from_bytes(head[80:84], "little")
-        if not binary_ok and not head.lstrip().lower().startswith(b"solid"):
-            raise errors.UnreadableMeshError("cannot read %s: not an STL file (neither ASCII, starting with "
-                                             "'solid', nor binary with a consistent triangle count)" % path)
+        if not binary_ok:
+            lines = [line.strip().lower() for line in head.split(b"\n") if line.strip()]
+            # ASCII STL: "solid NAME", then "facet normal ..." (or "endsolid" for an empty one).
+            if not (lines and lines[0].startswith(b"solid")
+                    and (len(lines) < 2 or lines[1].startswith((b"facet", b"endsolid")))):
+                raise errors.UnreadableMeshError("cannot read %s: not an STL file (neither ASCII, starting with "
+                                                 "'solid' and a facet, nor binary with a consistent triangle "
+                                                 "count)" % path)
 
 
 def _load_with_trimesh(path):
@@ -167,12 +186,28 @@ def _check_ply_counts(path, n_vertices, n_faces):
 
 
 def _text_lines(path, kind):
-    """The file's lines, with comments (from '#') stripped; rejects binary content."""
-    data = path.read_bytes()
-    if b"\0" in data and not data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
-        raise errors.UnreadableMeshError("cannot read %s: not a text %s file (binary data)" % (path, kind))
-    text = _decode(data)
-    return [line.split("#", 1)[0] for line in text.splitlines()]
+    """The file's lines one at a time, as (line number, words before any '#'), in bounded memory:
+    a large file that is not a mesh is rejected at its first bad line without being held whole.
+    Rejects binary content (a NUL character)."""
+    with open(path, "rb") as raw:
+        head = raw.read(4)
+        raw.seek(0)
+        encoding = "utf-8"
+        for bom, codec in ((codecs.BOM_UTF32_LE, "utf-32"), (codecs.BOM_UTF32_BE, "utf-32"),
+                           (codecs.BOM_UTF8, "utf-8-sig"), (codecs.BOM_UTF16_LE, "utf-16"),
+                           (codecs.BOM_UTF16_BE, "utf-16")):
+            if head.startswith(bom):
+                encoding = codec
+                break
+        # Numbers are ASCII; other characters (in comments) need not decode.
+        with io.TextIOWrapper(raw, encoding=encoding, errors="replace") as text:
+            for number, line in enumerate(text, 1):
+                if "\0" in line:
+                    raise errors.UnreadableMeshError("cannot read %s: not a text %s file (binary data)"
+                                                     % (path, kind))
+                words = line.split("#", 1)[0].split()
+                if words:
+                    yield number, words
 
 
 def _floats(words, path, line_number, what):
@@ -211,43 +246,52 @@ def read_off(path):
     ((4, 3), [0, 2, 1])
     """
     path = Path(path)
-    lines = [(k + 1, line.split()) for k, line in enumerate(_text_lines(path, "OFF"))]
-    lines = [(k, words) for k, words in lines if words]
-    if not lines or not lines[0][1][0].upper().endswith("OFF"):
+    size = path.stat().st_size
+    lines = _text_lines(path, "OFF")
+    first = next(lines, None)
+    if first is None or not first[1][0].upper().endswith("OFF"):
         raise errors.UnreadableMeshError("cannot read %s: not an OFF file (no OFF header)" % path)
-    counts = lines[0][1][1:]                        # "OFF n t e" on one line is allowed too
-    body = lines[1:]
+    counts = first[1][1:]                           # "OFF n t e" on one line is allowed too
     if not counts:
-        if not body:
+        second = next(lines, None)
+        if second is None:
             raise errors.UnreadableMeshError("cannot read %s: truncated (no vertex and face counts)" % path)
-        counts = body[0][1]
-        body = body[1:]
+        counts = second[1]
     try:
         n_vertices, n_faces = int(counts[0]), int(counts[1])
     except (ValueError, IndexError):
         raise errors.UnreadableMeshError("cannot read %s: the OFF header's counts %r are not two integers"
-                                         % (path, " ".join(counts))) from None
+                                         % (path, " ".join(counts)[:60])) from None
     if n_vertices <= 0 or n_faces <= 0:
         raise errors.UnreadableMeshError("cannot read %s as a mesh: the header declares %d vertices and %d "
                                          "faces" % (path, n_vertices, n_faces))
-    if len(body) < n_vertices + n_faces:
-        found_v = min(len(body), n_vertices)
-        found_f = max(len(body) - n_vertices, 0)
-        raise errors.UnreadableMeshError("cannot read %s: truncated (header promises %d vertices and %d "
-                                         "faces, found %d and %d)"
-                                         % (path, n_vertices, n_faces, found_v, found_f))
+
+    def truncated(found):
+        found_v = min(found, n_vertices)
+        found_f = max(found - n_vertices, 0)
+        return errors.UnreadableMeshError("cannot read %s: truncated (header promises %d vertices and %d "
+                                          "faces, found %d and %d)"
+                                          % (path, n_vertices, n_faces, found_v, found_f))
+
+    # A vertex line takes at least 6 bytes ("0 0 0\n"), a face line 8 ("3 0 1 2\n"): counts the file
+    # cannot hold are found without allocating for them.
+    if 6 * n_vertices + 8 * n_faces > size:
+        raise truncated(sum(1 for _ in lines))
     vertices = np.empty((n_vertices, 3))
-    for i, (line_number, words) in enumerate(body[:n_vertices]):
+    found = 0
+    for i, (line_number, words) in zip(range(n_vertices), lines):
         if len(words) < 3:
             raise errors.UnreadableMeshError("cannot read %s: line %d: vertex %d has %d coordinate(s), "
                                              "expected 3" % (path, line_number, i, len(words)))
         vertices[i] = _floats(words[:3], path, line_number, "a vertex coordinate")
+        found += 1
     faces = np.empty((n_faces, 3), np.int64)
     polygons = []
-    for i, (line_number, words) in enumerate(body[n_vertices:n_vertices + n_faces]):
+    for i, (line_number, words) in zip(range(n_faces), lines):
+        found += 1
         try:
             size = int(words[0])
-            indices = [int(w) for w in words[1:1 + size]]
+            indices = [int(w) for w in words[1:1 + size]] if size >= 0 else []
         except ValueError:
             raise errors.UnreadableMeshError("cannot read %s: line %d: face %d has a non-integer index"
                                              % (path, line_number, i)) from None
@@ -263,6 +307,8 @@ def read_off(path):
             raise errors.FaceIndexError("%s: line %d: face %d refers to vertex %s, which does not exist "
                                         "(the file has %d vertices)"
                                         % (path, line_number, i, _too_large(indices), n_vertices)) from None
+    if found < n_vertices + n_faces:
+        raise truncated(found)
     _reject_polygons(path, polygons)
     return vertices, faces
 
@@ -286,48 +332,48 @@ def read_obj(path):
         A face refers to a vertex that does not exist.
     """
     path = Path(path)
-    raw = _text_lines(path, "OBJ")
-    vertices, faces, face_lines, polygons = [], [], [], []
+    # Compact arrays, not lists of lists: memory stays a small multiple of the mesh's own size.
+    vertices, faces, face_lines = array("d"), array("q"), array("q")
+    polygons = []
     known = False
-    for k, line in enumerate(raw):
-        words = line.split()
-        if not words:
-            continue
+    n_vertices = 0
+    for line_number, words in _text_lines(path, "OBJ"):
         if words[0] == "v":
             known = True
             if len(words) < 4:
                 raise errors.UnreadableMeshError("cannot read %s: line %d: vertex %d has %d coordinate(s), "
-                                                 "expected 3" % (path, k + 1, len(vertices) + 1,
+                                                 "expected 3" % (path, line_number, n_vertices + 1,
                                                                  len(words) - 1))
-            vertices.append(_floats(words[1:4], path, k + 1, "a vertex coordinate"))
+            vertices.extend(_floats(words[1:4], path, line_number, "a vertex coordinate"))
+            n_vertices += 1
         elif words[0] == "f":
             known = True
+            n_faces = len(face_lines)
             try:
                 corners = [int(w.split("/")[0]) for w in words[1:]]
             except ValueError:
                 raise errors.UnreadableMeshError("cannot read %s: line %d: face %d has a non-integer index"
-                                                 % (path, k + 1, len(faces))) from None
+                                                 % (path, line_number, n_faces)) from None
             if len(corners) != 3:
-                polygons.append((len(faces), len(corners)))
+                polygons.append((n_faces, len(corners)))
                 corners = (corners + [0, 0, 0])[:3]
             # OBJ numbers vertices from 1; negative numbers count back from the latest vertex.
-            faces.append([c - 1 if c > 0 else len(vertices) + c if c < 0 else -1 for c in corners])
-            face_lines.append(k + 1)
-        elif words[0] in ("vt", "vn", "vp", "g", "o", "s", "usemtl", "mtllib", "l", "p", "cstype",
-                          "deg", "curv", "surf", "end"):
+            corners = [c - 1 if c > 0 else n_vertices + c if c < 0 else -1 for c in corners]
+            try:
+                faces.extend(corners)
+            except OverflowError:               # an index beyond 64 bits cannot name a vertex
+                raise errors.FaceIndexError("%s: line %d: face %d refers to vertex %s, which does not exist "
+                                            "(the file has %d vertices, numbered from 1)"
+                                            % (path, line_number, n_faces, _too_large(corners) + 1,
+                                               n_vertices)) from None
+            face_lines.append(line_number)
+        elif words[0] in OBJ_STATEMENTS:
             known = True
     if not known:
         raise errors.UnreadableMeshError("cannot read %s: not an OBJ file (no v or f lines)" % path)
     _reject_polygons(path, polygons)
-    vertices = np.asarray(vertices, float).reshape(-1, 3)
-    try:
-        faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    except OverflowError:                       # an index beyond 64 bits cannot name a vertex
-        i = next(i for i, f in enumerate(faces) if _too_large(f) is not None)
-        raise errors.FaceIndexError("%s: line %d: face %d refers to vertex %s, which does not exist "
-                                    "(the file has %d vertices, numbered from 1)"
-                                    % (path, face_lines[i], i, _too_large(faces[i]) + 1,
-                                       len(vertices))) from None
+    vertices = np.frombuffer(vertices, float).reshape(-1, 3).copy()
+    faces = np.frombuffer(faces, np.int64).reshape(-1, 3).copy()
     bad = (faces < 0) | (faces >= len(vertices))
     if bad.any():
         i = int(np.flatnonzero(bad.any(axis=1))[0])
@@ -361,8 +407,12 @@ def atomic_output(path, mode="w"):
     Inside :func:`output_transaction` the finished temporary file is staged instead, and renamed
     together with the transaction's other outputs when the transaction ends.
     """
+    from . import interrupts
+
     path = Path(path)
     directory = path.parent if str(path.parent) else Path(".")
+    # A signal some library caught (and went on) still stops every write.
+    interrupts.check_before_write()
     fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".tmp", dir=directory)
     try:
         # mkstemp makes the file private (0600); give it the permissions a plain open() would.
@@ -371,6 +421,7 @@ def atomic_output(path, mode="w"):
         os.chmod(tmp, 0o666 & ~umask)
         with os.fdopen(fd, mode) as handle:
             yield handle
+        interrupts.check_before_write()
         if _staged is not None:
             _staged.append((tmp, path))
         else:
@@ -427,6 +478,46 @@ def output_transaction():
         raise
     _staged = None
     _commit(staged)
+
+
+@contextmanager
+def staged_outputs():
+    """Like :func:`output_transaction`, but the finished temporary files are left for the caller,
+    as the list this yields of (temporary path, destination), to rename with :func:`commit_staged`
+    (or remove): a batch's worker stages a mesh's files, and the batch renames them when it records
+    the mesh. On any exception the temporary files are removed."""
+    global _staged
+    if _staged is not None:
+        raise RuntimeError("staged_outputs() inside another transaction")
+    staged = _staged = []
+    try:
+        yield staged
+    except BaseException:
+        _staged = None
+        for tmp, _ in staged:
+            _remove_quietly(tmp)
+        raise
+    _staged = None
+
+
+def commit_staged(staged, remove=()):
+    """Rename files staged by :func:`staged_outputs` into place in their order, after removing the
+    paths ``remove`` (outputs of an earlier run that this one replaces with nothing). Signals are
+    deferred meanwhile (:func:`sphere_nlp.interrupts.defer_signals`); the caller decides what a
+    pending one means afterwards."""
+    from . import interrupts
+
+    with interrupts.defer_signals():
+        for path in remove:
+            _remove_quietly(path)
+        for tmp, path in staged:
+            os.replace(tmp, path)
+
+
+def discard_staged(staged):
+    """Remove files staged by :func:`staged_outputs` that will not be committed."""
+    for tmp, _ in staged:
+        _remove_quietly(tmp)
 
 
 def _commit(staged):

@@ -709,13 +709,20 @@ class _AngleProblem:
         -------
         IpoptRun
         """
+        lbx, ubx, lbg, ubg = self._bounds(inequalities, excess_bounds, log_u_lower)
+        if interrupts.deadline_passed():
+            # The run's time is up (interrupts.deadline): report the limit without building the
+            # solver (seconds on a large mesh) or starting IPOPT.
+            x0 = np.array(x0, dtype=float).ravel()
+            return IpoptRun(x0=x0, x=x0.copy(), lam_g=np.zeros(len(lbg)), lam_x=np.zeros(len(x0)),
+                            objective=float("nan"), status="Maximum_WallTime_Exceeded", iterations=0,
+                            time_s=0.0, build_s=0.0, stats={})
         start = time.perf_counter()
         solver, callback = self._solver(inequalities, options or {})
         build_s = time.perf_counter() - start
         callback.reset(progress, abort_violation, abort_iterations, on_iterate, sound_violation)
         if modify_hessian is not None and self._numeric is None:
             raise ValueError("modify_hessian needs the log-chord form with numpy evaluation")
-        lbx, ubx, lbg, ubg = self._bounds(inequalities, excess_bounds, log_u_lower)
         args = dict(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
         if lam_g0 is not None:
             lam = np.zeros(len(lbg))
@@ -724,20 +731,17 @@ class _AngleProblem:
         if lam_x0 is not None:
             args["lam_x0"] = lam_x0
         start = time.perf_counter()
-        if interrupts.deadline_passed():
-            # The run's time is up (interrupts.deadline): report the limit without starting IPOPT.
-            x0 = np.array(x0, dtype=float).ravel()
-            return IpoptRun(x0=x0, x=x0.copy(), lam_g=np.zeros(len(lbg)), lam_x=np.zeros(len(x0)),
-                            objective=float("nan"), status="Maximum_WallTime_Exceeded", iterations=0,
-                            time_s=0.0, build_s=build_s, stats={})
         if self._numeric is not None:
             self._numeric.modify_hessian = modify_hessian
         try:
-            out = solver(**args)
+            # A signal inside IPOPT is only recorded: raised inside a callback, CasADi would catch
+            # it and IPOPT step around it; the iteration callback stops IPOPT instead
+            # (interrupts.stop_requested), and the signal is raised once IPOPT has returned.
+            with interrupts.defer_signals():
+                out = solver(**args)
         finally:
             if self._numeric is not None:
                 self._numeric.modify_hessian = None
-        # IPOPT swallows what its callbacks raise; a signal it caught ends the run here.
         interrupts.raise_if_interrupted()
         stats = solver.stats()
         status = stats.get("return_status", "unknown")

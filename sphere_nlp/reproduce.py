@@ -232,7 +232,7 @@ FIGURES = {"fig3": reproduce_fig3}
 
 def main(argv=None):
     """``python -m sphere_nlp reproduce FIGURE [--out DIR]``; exit 0 when every panel is certified."""
-    from .cli import run_subcommand, subcommand_parser
+    from .commands import check_output_folder, run_subcommand, subcommand_parser
 
     parser = subcommand_parser(
         "reproduce",
@@ -241,6 +241,9 @@ def main(argv=None):
     parser.add_argument("figure", choices=sorted(FIGURES), help="which figure")
     parser.add_argument("--out", default=".", metavar="DIR", help="output folder (default: .)")
     parser.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+
+    def check(args):
+        check_output_folder("--out", args.out)
 
     def body(args, say):
         records = FIGURES[args.figure](args.out, progress=say)
@@ -251,4 +254,5 @@ def main(argv=None):
             return 1
         return 0
 
-    return run_subcommand(parser, argv, body)
+    return run_subcommand(parser, argv, body, check=check,
+                          interrupted=lambda args: "the files done so far are in %s" % args.out)

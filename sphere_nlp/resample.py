@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import errors
-from .cli import run_subcommand, subcommand_parser
+from .commands import check_output_folder, check_output_paths, run_subcommand, subcommand_parser
 from .locate import SphereLocator, interpolate, nearest_corner
 from .shapes import icosphere
 
@@ -233,37 +233,88 @@ def morph_frames(A, B, frames, R=None, fit=False):
 
 # -- command line ------------------------------------------------------------------------------------
 
-def load_map(mesh_path, sphere_path=None, say=print, target="original-angles"):
-    """``(X, S, F)`` for a mesh: read an existing sphere (checked against the mesh and certified) or map it."""
+# A given sphere may have any radius (FreeSurfer's ?h.sphere: 100) if it is centred at the origin:
+# every radius within this fraction of the median, the centroid within it of the origin (in radii).
+SPHERE_RADIUS_SPREAD = 0.01
+
+
+def unit_sphere(S, sphere_path):
+    """``S`` (positions of a sphere file) on the unit sphere, and a note saying so if it was scaled.
+
+    A sphere of another radius centred at the origin is projected radially onto the unit sphere;
+    anything else is a UsageError.
+
+    >>> from sphere_nlp.shapes import icosphere
+    >>> S, note = unit_sphere(100 * icosphere(1)[0], "lh.sphere")
+    >>> float(np.abs(np.linalg.norm(S, axis=1) - 1).max()) < 1e-15, note
+    (True, 'lh.sphere: a sphere of radius 100, scaled onto the unit sphere')
+    """
+    S = np.asarray(S, float)
+    radii = np.linalg.norm(S, axis=1)
+    if np.all(np.abs(radii - 1) < 1e-9):
+        return S, None
+    radius = float(np.median(radii)) if len(radii) else 0.0
+    centroid = float(np.linalg.norm(S.mean(axis=0))) if len(S) else 0.0
+    if not (radius > 0 and np.isfinite(radius) and np.all(np.abs(radii / radius - 1) <= SPHERE_RADIUS_SPREAD)
+            and centroid <= SPHERE_RADIUS_SPREAD * radius):
+        raise errors.UsageError(
+            "%s is not a sphere centred at the origin (radii %.4g to %.4g, centroid %.3g from the origin)"
+            % (sphere_path, radii.min(), radii.max(), centroid))
+    return S / radii[:, None], "%s: a sphere of radius %.4g, scaled onto the unit sphere" % (sphere_path, radius)
+
+
+def validated_mesh(path):
+    """``(X, F)`` of the mesh file ``path`` after the checks and repairs of a run (MeshInputError
+    naming the file otherwise), before anything is solved."""
+    from .mesh_io import load_mesh
+    from .repair import prepare_mesh
+
+    V, F = load_mesh(path)
+    try:
+        prepared = prepare_mesh(V, F)
+    except errors.MeshInputError as exc:
+        raise type(exc)("%s: %s" % (path, exc)) from None
+    return prepared
+
+
+def checked_sphere(mesh_path, sphere_path):
+    """``(X, S, F)`` of a mesh and its given sphere (any radius, centred), checked and certified;
+    and the note of :func:`unit_sphere` (or None)."""
     from .certify import certify
     from .mesh_io import load_mesh
 
-    if sphere_path is None:
-        from .api import parameterize
-
-        say("mapping %s (%s)" % (mesh_path, target))
-        result = parameterize(str(mesh_path), target=target)
-        return np.asarray(result.input_vertices, float), np.asarray(result.vertices, float), \
-            np.asarray(result.faces, np.int64)
     X, F = load_mesh(mesh_path)[:2]
-    S, FS = load_mesh(sphere_path)[:2]
+    try:
+        S, FS = load_mesh(sphere_path)[:2]
+    except errors.MeshInputError as exc:
+        raise errors.UsageError(str(exc)) from None
     if len(S) != len(X) or np.shape(FS) != np.shape(F) or not np.array_equal(FS, F):
         raise errors.UsageError("%s is not a sphere of %s: %d vertices / %d faces against %d / %d, or "
                                 "other faces" % (sphere_path, mesh_path, len(S), len(FS), len(X), len(F)))
+    S, note = unit_sphere(S, sphere_path)
     cert = certify(S, F)
     if not cert.valid:
         raise errors.UsageError("%s is not a certified sphere: %s" % (sphere_path, cert.reason))
-    return np.asarray(X, float), np.asarray(S, float), np.asarray(F, np.int64)
+    return (np.asarray(X, float), S, np.asarray(F, np.int64)), note
 
 
-def _check_folder(path, what):
-    """UsageError, before any work, when ``path``'s folder (or, for a folder, itself) cannot take files."""
-    path = Path(path)
-    folder = path if what == "folder" else (path.parent if str(path.parent) else Path("."))
-    if what == "folder" and path.exists() and not path.is_dir():
-        raise errors.UsageError("cannot write to %s: it is a file, not a folder" % path)
-    if what != "folder" and not folder.is_dir():
-        raise errors.UsageError("cannot write %s: no folder %s" % (path, folder))
+def load_map(mesh_path, sphere_path=None, say=print, target="original-angles"):
+    """``(X, S, F)`` for a mesh: read an existing sphere (checked against the mesh and certified;
+    any radius, centred at the origin) or map it."""
+    if sphere_path is None:
+        from .api import parameterize
+
+        def on_stage(name):
+            if name == "solve":                     # after the mesh was read and validated
+                say("mapping %s (%s)" % (mesh_path, target))
+
+        result = parameterize(str(mesh_path), target=target, on_stage=on_stage)
+        return np.asarray(result.input_vertices, float), np.asarray(result.vertices, float), \
+            np.asarray(result.faces, np.int64)
+    found, note = checked_sphere(mesh_path, sphere_path)
+    if note:
+        say(note)
+    return found
 
 
 def _check_inputs(*paths):
@@ -271,6 +322,29 @@ def _check_inputs(*paths):
     for path in paths:
         if path and not Path(path).is_file():
             raise errors.UsageError("cannot read %s: no such file" % path)
+
+
+def _check_maps(args, *pairs):
+    """Every (mesh, sphere) of ``pairs`` read and checked before anything is solved: a mesh without
+    a sphere is validated, a given sphere checked against its mesh. Returns the notes to say and
+    each map's number of vertices (as a run numbers them: duplicates merged)."""
+    notes, sizes = [], []
+    for mesh, sphere in pairs:
+        if sphere is None:
+            sizes.append(len(validated_mesh(mesh).vertices))
+        else:
+            (X, _, _), note = checked_sphere(mesh, sphere)
+            sizes.append(len(X))
+            notes.append(note)
+    return [note for note in notes if note], sizes
+
+
+def _inputs(args, *names):
+    """(what, path) of the run's inputs, for check_output_paths."""
+    labels = {"mesh": "the input mesh", "a": "the mesh A", "b": "the mesh B", "sphere": "the --sphere file",
+              "sphere_a": "the --sphere-a file", "sphere_b": "the --sphere-b file",
+              "values": "the --values file"}
+    return [(labels[name], getattr(args, name)) for name in names]
 
 
 def _aligned_maps(args, landmarks, say, A=None):
@@ -290,32 +364,45 @@ def resample_main(argv=None):
     parser.add_argument("mesh", metavar="MESH")
     parser.add_argument("--icosphere", type=int, default=5, metavar="K",
                         help="icosphere level: 10*4^K+2 vertices (default 5: 10242)")
-    parser.add_argument("--sphere", metavar="S.off", help="an existing sphere of MESH (same vertices and faces)")
+    parser.add_argument("--sphere", metavar="S.off",
+                        help="an existing sphere of MESH (same vertices and faces; any radius, centred at "
+                             "the origin, e.g. FreeSurfer's radius-100 ?h.sphere: scaled to radius 1)")
     parser.add_argument("-o", "--output", required=True, metavar="OUT", help="remeshed shape, .off/.obj/.ply")
     parser.add_argument("-q", "--quiet", action="store_true")
 
-    def body(args, say):
-        from .mesh_io import check_mesh_path, write_mesh
+    def check(args):
+        from .mesh_io import check_mesh_path
 
         check_mesh_path(args.output)
-        _check_folder(args.output, "file")
         if not 0 <= args.icosphere <= 8:
             raise errors.UsageError("--icosphere must be between 0 and 8, got %d" % args.icosphere)
         _check_inputs(args.mesh, args.sphere)
+        check_output_paths(_inputs(args, "mesh", "sphere"), [("-o", args.output)])
+        args.notes, _ = _check_maps(args, (args.mesh, args.sphere))
+
+    def body(args, say):
+        from .mesh_io import output_transaction, write_mesh
+
         start = time.perf_counter()
         X, S, F = load_map(args.mesh, args.sphere, say)
         t_map = time.perf_counter() - start
         start = time.perf_counter()
         V, G = resample_icosphere(X, S, F, args.icosphere)
         t_resample = time.perf_counter() - start
-        write_mesh(args.output, V, G)
         h, mean = hausdorff((X, F), (V, G))
+        with output_transaction():
+            write_mesh(args.output, V, G)
         diag = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
         say("wrote %s: %d vertices; map %.2f s, resample %.2f s; Hausdorff %.4g (%.3f%% of the bounding "
             "box diagonal), mean distance %.3g" % (args.output, len(V), t_map, t_resample, h, 100 * h / diag, mean))
         return 0
 
-    return run_subcommand(parser, argv, body)
+    return run_subcommand(parser, argv, body, check=check, interrupted="nothing written")
+
+
+def morph_frame_names(frames):
+    """The files ``sphere-nlp morph`` writes into its folder."""
+    return ["frame_%03d.obj" % i for i in range(frames)] + ["strip.png"]
 
 
 def morph_main(argv=None):
@@ -323,13 +410,14 @@ def morph_main(argv=None):
     parser = subcommand_parser(
         "morph",
         description="Write in-between meshes from A to B on A's connectivity (B resampled onto A's "
-                    "sphere after aligning the spheres), DIR/frame_000.obj..., and DIR/strip.png.")
+                    "sphere after aligning the spheres), DIR/frame_000.obj..., and DIR/strip.png; "
+                    "all of them or none.")
     parser.add_argument("a", metavar="A")
     parser.add_argument("b", metavar="B")
     parser.add_argument("--frames", type=int, default=30, metavar="N", help="number of frames (default 30)")
     parser.add_argument("--out", required=True, metavar="DIR")
-    parser.add_argument("--sphere-a", metavar="SA.off", help="an existing sphere of A")
-    parser.add_argument("--sphere-b", metavar="SB.off", help="an existing sphere of B")
+    parser.add_argument("--sphere-a", metavar="SA.off", help="an existing sphere of A (any radius, centred)")
+    parser.add_argument("--sphere-b", metavar="SB.off", help="an existing sphere of B (any radius, centred)")
     parser.add_argument("--landmarks", metavar="a:b,...",
                         help="vertex pairs (A index:B index, 3 or more) to align the spheres; default: "
                              "the shapes' principal axes")
@@ -337,25 +425,46 @@ def morph_main(argv=None):
                         help="move B onto A by the best rotation, scale and translation before blending")
     parser.add_argument("-q", "--quiet", action="store_true")
 
-    def body(args, say):
-        from .mesh_io import write_mesh
-
+    def check(args):
         if args.frames < 2:
             raise errors.UsageError("--frames must be at least 2, got %d" % args.frames)
-        _check_folder(args.out, "folder")
-        landmarks = _parse_landmarks(args.landmarks)
+        if args.frames > 10000:
+            raise errors.UsageError("--frames must be at most 10000, got %d" % args.frames)
+        check_output_folder("--out", args.out)
+        args.landmarks_parsed = _parse_landmarks(args.landmarks)
         _check_inputs(args.a, args.b, args.sphere_a, args.sphere_b)
-        A, B, R = _aligned_maps(args, landmarks, say)
+        out = Path(args.out)
+        inputs = _inputs(args, "a", "b", "sphere_a", "sphere_b")
+        if out.is_dir():
+            check_output_paths(inputs, [("--out", out / name) for name in morph_frame_names(args.frames)])
+        args.notes, _ = _check_maps(args, (args.a, args.sphere_a), (args.b, args.sphere_b))
+
+    def body(args, say):
+        from .mesh_io import output_transaction, write_mesh
+
+        for note in args.notes:
+            say(note)
+        A, B, R = _aligned_maps(args, args.landmarks_parsed, say)
         frames = morph_frames(A, B, args.frames, R, fit=args.fit)
         out = Path(args.out)
+        created = not out.exists()
         out.mkdir(parents=True, exist_ok=True)
-        for i, V in enumerate(frames):
-            write_mesh(out / ("frame_%03d.obj" % i), V, A[2])
-        write_strip(out / "strip.png", frames, A[2])
+        try:
+            with output_transaction():          # every frame and the strip, or none
+                for name, V in zip(morph_frame_names(len(frames)), frames):
+                    write_mesh(out / name, V, A[2])
+                write_strip(out / "strip.png", frames, A[2])
+        except BaseException:
+            if created:
+                try:
+                    out.rmdir()                 # the folder this run made, empty again
+                except OSError:
+                    pass
+            raise
         say("wrote %d frames and strip.png to %s" % (len(frames), out))
         return 0
 
-    return run_subcommand(parser, argv, body)
+    return run_subcommand(parser, argv, body, check=check, interrupted="nothing written")
 
 
 def _parse_landmarks(text):
@@ -370,6 +479,19 @@ def _parse_landmarks(text):
     return pairs
 
 
+def _read_values(path, rows):
+    """The --values array, with ``rows`` rows (one per vertex of A), or UsageError."""
+    try:
+        values = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise errors.UsageError("cannot read %s as a .npy array: %s" % (path, getattr(exc, "strerror", None) or exc)) \
+            from None
+    if values.ndim == 0 or len(values) != rows:
+        raise errors.UsageError("%s has %s rows, A has %d vertices: one row per vertex of A is needed"
+                                % (path, len(values) if values.ndim else "no", rows))
+    return values
+
+
 def transfer_main(argv=None):
     """``sphere-nlp transfer A B --values VALUES.npy -o OUT.npy [--kind nearest]``."""
     parser = subcommand_parser(
@@ -382,36 +504,35 @@ def transfer_main(argv=None):
     parser.add_argument("-o", "--output", required=True, metavar="OUT.npy", help="B's per-vertex values")
     parser.add_argument("--kind", choices=("linear", "nearest"), default="linear",
                         help="linear: barycentric (fields, colours; default); nearest: labels")
-    parser.add_argument("--sphere-a", metavar="SA.off", help="an existing sphere of A")
-    parser.add_argument("--sphere-b", metavar="SB.off", help="an existing sphere of B")
+    parser.add_argument("--sphere-a", metavar="SA.off", help="an existing sphere of A (any radius, centred)")
+    parser.add_argument("--sphere-b", metavar="SB.off", help="an existing sphere of B (any radius, centred)")
     parser.add_argument("--landmarks", metavar="a:b,...",
                         help="vertex pairs (A index:B index, 3 or more) to align the spheres; default: "
                              "the shapes' principal axes")
     parser.add_argument("-q", "--quiet", action="store_true")
 
-    def body(args, say):
-        from .mesh_io import atomic_output
-
+    def check(args):
         if not args.output.endswith(".npy"):
             raise errors.UsageError("cannot write %s: output must end in .npy" % args.output)
-        _check_folder(args.output, "file")
-        landmarks = _parse_landmarks(args.landmarks)
+        args.landmarks_parsed = _parse_landmarks(args.landmarks)
         _check_inputs(args.a, args.b, args.values, args.sphere_a, args.sphere_b)
-        try:
-            values = np.load(args.values, allow_pickle=False)
-        except ValueError as exc:
-            raise errors.UsageError("cannot read %s: %s" % (args.values, exc)) from None
-        A = load_map(args.a, args.sphere_a, say)
-        if len(values) != len(A[0]):
-            raise errors.UsageError("%s has %d rows, A has %d vertices" % (args.values, len(values), len(A[0])))
-        A, B, R = _aligned_maps(args, landmarks, say, A)
-        result = transfer(values, A, B, R, kind=args.kind)
-        with atomic_output(args.output, "wb") as handle:
+        check_output_paths(_inputs(args, "a", "b", "values", "sphere_a", "sphere_b"), [("-o", args.output)])
+        args.notes, (rows, _) = _check_maps(args, (args.a, args.sphere_a), (args.b, args.sphere_b))
+        args.values_array = _read_values(args.values, rows)       # one row per vertex of A
+
+    def body(args, say):
+        from .mesh_io import atomic_output, output_transaction
+
+        for note in args.notes:
+            say(note)
+        A, B, R = _aligned_maps(args, args.landmarks_parsed, say)
+        result = transfer(args.values_array, A, B, R, kind=args.kind)
+        with output_transaction(), atomic_output(args.output, "wb") as handle:
             np.save(handle, result)
         say("wrote %s: %s values for %d vertices of %s" % (args.output, args.kind, len(result), args.b))
         return 0
 
-    return run_subcommand(parser, argv, body)
+    return run_subcommand(parser, argv, body, check=check, interrupted="nothing written")
 
 
 def _check_landmarks(landmarks, A, B):

@@ -27,6 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from . import interrupts
 from .certify import certify
 from .geometry import (corner_angles, scatter_to_vertices, signed_solid_angles, spherical_angles,
                        triangle_areas)
@@ -86,6 +87,8 @@ def conformal_start(connectivity, vertices, weights=None, angles=None):
         return None
     if certify(positions, faces).valid:
         return positions, "conformal"
+    if interrupts.deadline_passed():
+        return None                 # no time left to repair it (see starting_positions)
     # A few flipped triangles (knight 57, cheburashka 38, max_planck 2, nefertiti 1): re-embed
     # small disks around them, which keeps the map conformal elsewhere.
     from .untangle import untangle
@@ -142,10 +145,12 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", a
     faces = connectivity.faces
     weights = None if vertices is None else vertex_areas(vertices, faces, connectivity.n_vertices)
     found = None
-    if kind in ("auto", "conformal") and vertices is not None:
+    # Past the run's deadline (interrupts.deadline) only the embedding, one linear solve valid by
+    # construction: the solve then stops at once and reports the limit.
+    if kind in ("auto", "conformal") and vertices is not None and not interrupts.deadline_passed():
         found = conformal_start(connectivity, vertices, weights, angles)
     positions, kind = found or embedding_start(connectivity, vertices, weights)
-    if gauge == "excess":
+    if gauge == "excess" and not interrupts.deadline_passed():
         from .embedding import excess_gauge
         moved = excess_gauge(positions, faces)
         if moved is not positions and certify(moved, faces).valid:

@@ -45,6 +45,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
+from . import interrupts
 from .certify import certify, signed_solid_angles
 
 # A region's boundary must lie within arccos(0.2) ~ 78 degrees of its centre for the gnomonic
@@ -483,6 +484,9 @@ def untangle(positions, faces, mesh_vertices=None, max_rounds=10, weights="mean-
     flipped_before = int(bad_faces(X).sum())
     kept, largest, reason, rounds = 0, 0, "", 0
     for rounds in range(1, max_rounds + 1):
+        if interrupts.deadline_passed():
+            reason = "the run's time limit was reached"     # see interrupts.deadline
+            break
         with np.errstate(all="ignore"):
             omega = signed_solid_angles(X, faces)
         bad = ~(omega > 0)

@@ -1,8 +1,10 @@
 """Command line: outputs, report and solution files, exit statuses."""
 
 import json
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,9 +14,14 @@ from sphere_nlp.certify import certify, spherical_angles
 from sphere_nlp.mesh_io import load_mesh
 
 
+ROOT = Path(__file__).resolve().parents[1]
+
+
 def run(*args, cwd=None):
+    # This checkout's sphere_nlp, from any working folder (the package need not be installed).
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     return subprocess.run([sys.executable, "-m", "sphere_nlp", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd)
+                          text=True, cwd=cwd, env=env)
 
 
 def test_cli_writes_certified_sphere_report_and_solution(tmp_path):
@@ -107,7 +114,7 @@ def test_compare_rejects_unknown_methods_before_running_and_skips_bad_meshes(tmp
     p = run("compare", garbage, MODELS / "cylinder.off", "--out", out, "--methods", "conformal")
     assert p.returncode == 2 and "Traceback" not in p.stderr
     lines = p.stderr.splitlines()
-    assert "skipping" in lines[1] and "garbage.off" in lines[1]
+    assert "skipping" in lines[0] and "garbage.off" in lines[0]         # before any progress line
     assert lines[-1].startswith("sphere-nlp compare: error: ") and "garbage.off" in lines[-1]
     rows = json.loads((out / "compare.json").read_text())
     assert [(r["mesh"], r["method"], r["valid"]) for r in rows] == [("garbage.off", "-", False),

@@ -40,13 +40,19 @@ def test_max_iter_is_a_failure_with_ipopt_status_and_no_output(tmp_path, capsys,
     status, stderr = run_cli(capsys, ellipsoid_file, "-o", out, "--max-iter", "1", "-q", "--report", report)
     assert status == 1
     lines = stderr.strip().splitlines()
+    # The line says what the count counts (every stage has its own --max-iter) and what was written.
     assert len(lines) == 1 and re.fullmatch(r"sphere-nlp: error: the angle solve failed \(IPOPT status "
-                                            r"Maximum_Iterations_Exceeded after \d+ iterations\); nothing "
-                                            r"written", lines[0]), stderr
+                                            r"Maximum_Iterations_Exceeded in stage [\w-]+ after 1 iteration; "
+                                            r"(\d+) iterations over (\d+) stages in all, --max-iter limits "
+                                            r"each stage\); nothing written but the report %s" % re.escape(str(report)),
+                                            lines[0]), stderr
+    total, stages = map(int, re.search(r"(\d+) iterations over (\d+) stages", lines[0]).groups())
     assert not out.exists() and leftovers(tmp_path) == []
     # The report is still written, complete, and says why: it documents the failure.
     written = json.loads(report.read_text())
     assert written["success"] is False and written["status"] == "Maximum_Iterations_Exceeded"
+    assert written["iterations"] == total and len(written["stages"]) == stages
+    assert all(stage["iterations"] <= 1 for stage in written["stages"])
 
 
 def test_max_time_is_a_failure_with_ipopt_status(tmp_path, capsys, ellipsoid_file):
