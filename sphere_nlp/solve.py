@@ -94,9 +94,10 @@ class AngleSolution:
         projected onto the constraints (stage "projection"), feasible but not optimal; ``status``
         is then the stopped stage's (e.g. "Maximum_WallTime_Exceeded").
     floor_corners, floor_triangles : int
-        Log-chord: corners whose u, triangles whose e end at, below or within 1% of their floor
-        (:func:`floor_bounds`: ``corner_floor`` x beta, more for small targets, or the margin;
-        ``area_floor`` x 4 pi / t).
+        Log-chord: corners whose u end at, below or within 1% of their floor, triangles whose e end
+        within 1% of theirs (:func:`floor_bounds`: ``corner_floor`` x beta, more for small targets,
+        or the margin; ``area_floor`` x 4 pi / t; a triangle the start had further below keeps
+        its own size as bound, ``max_floor_lift``).
     """
 
     angles: np.ndarray
@@ -228,7 +229,9 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         Override ``settings.corner_floor`` (in the area modes ``settings.area_mode_corner_floor``)
         and ``settings.area_floor``: log-chord bounds u >= corner_floor x beta per corner (more
         for a corner whose target is small, :func:`floor_bounds`) and e >= area_floor x 4 pi / t
-        per triangle; 0 disables a floor.
+        per triangle; 0 disables a floor. A triangle of the start below the floor is lifted to it
+        when ``area_floor`` is given (the floor then holds at the end), else only if it is within
+        ``settings.max_floor_lift`` of it (by default none: it keeps its own size less 10% as bound).
 
     Returns
     -------
@@ -244,7 +247,8 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         if corner_floor == 0:                    # no corner floors at all: the margin alone
             settings = settings.replace(small_corner_floor=0.0, area_mode_small_corner_floor=0.0, sliver_band=0.0)
     if area_floor is not None:
-        settings = settings.replace(area_floor=float(area_floor))
+        # A floor asked for holds at the end: every triangle of the start below it is lifted to it.
+        settings = settings.replace(area_floor=float(area_floor), max_floor_lift=np.inf)
     if on_limit not in ON_LIMIT:
         raise ValueError("on_limit must be one of %s, not %r" % (ON_LIMIT, on_limit))
     if start is None:
@@ -1019,10 +1023,13 @@ def _stage_record(name, run):
 
 
 def _floor_counts(context, angles, excess):
-    """Corners and triangles at, below or within 1% of their floors (context.log_u_floor, log_e_floor)."""
+    """Corners at, below or within 1% of their floors (context.log_u_floor), triangles within 1% of
+    theirs (context.log_e_floor): a triangle the start had below it keeps its own size as bound
+    (``max_floor_lift``) and is not on the floor."""
     with np.errstate(divide="ignore", invalid="ignore"):
+        log_e = np.log(excess)
         return (int(np.sum(_log_u(angles, excess) <= context.log_u_floor + 0.01)),
-                int(np.sum(np.log(excess) <= context.log_e_floor + 0.01)))
+                int(np.sum((log_e <= context.log_e_floor + 0.01) & (log_e >= context.log_e_floor - 0.01))))
 
 
 def _solution(context, angles, excess, run, stopped_status=None):
