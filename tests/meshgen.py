@@ -249,6 +249,11 @@ def with_cap_sliver(vertices, faces, face, gap=2e-4, where=0.3):
     return np.vstack([vertices, new]), F
 
 
+# The limbed bodies of 20k-50k vertices that the slow tests and benchmarks/run.py --limbs map.
+LIMBED_BODIES = {"22k": dict(n_limbs=4, radius=0.15), "27k": dict(n_limbs=6, radius=0.15),
+                 "50k": dict(n_limbs=8, radius=0.2, n_claws=4)}
+
+
 def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions=5, n_claws=2,
                 claw_length=2.0, taper=1.0):
     """A round body with ``n_limbs`` long limbs, some ending in claws: the shape of a scanned animal.

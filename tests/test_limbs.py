@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from meshgen import ellipsoid, limbed_body
+from meshgen import LIMBED_BODIES, ellipsoid, limbed_body
 from sphere_nlp import parameterize
 from sphere_nlp.connectivity import build_connectivity
 from sphere_nlp.errors import SolveError
@@ -146,17 +146,13 @@ def test_a_small_limbed_body_certifies_in_the_default_mode():
     assert result.iterations <= 60
 
 
-# The limbed bodies of 20k-50k vertices (benchmarks/run.py "limbs:..." rows): 6-8 limbs of 10-30
-# radii, claws on two to four. Each took over 900 s (not converged) with the start's tips lifted to
-# the area floor; tens of iterations now.
-LIMBED_SIZES = {"limbs-22k": dict(n_limbs=4, radius=0.15), "limbs-27k": dict(n_limbs=6, radius=0.15),
-                "limbs-50k": dict(n_limbs=8, radius=0.2, n_claws=4)}
-
-
+# The limbed bodies of 20k-50k vertices (meshgen.LIMBED_BODIES; benchmarks/run.py --limbs): 4-8
+# limbs of 10-30 radii, two to four clawed. With the start's tips lifted to the area floor the 27k
+# one had not converged after 571 iterations and 900 s; tens of iterations now.
 @pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(LIMBED_SIZES))
+@pytest.mark.parametrize("name", sorted(LIMBED_BODIES))
 def test_limbed_bodies_of_20k_to_50k_vertices_certify_in_the_default_mode(name):
-    V, F = limbed_body(**LIMBED_SIZES[name])
+    V, F = limbed_body(**LIMBED_BODIES[name])
     assert 20000 <= len(V) <= 50000
     result = _certified_quickly(V, F)
     assert result.iterations <= 80
