@@ -213,23 +213,33 @@ LINEAR_SOLVER_FAILED = "Linear_Solver_Failed"
 @contextlib.contextmanager
 def _c_stdout_captured():
     """Inside the block, what C code writes to the standard output (fd 1) goes to a temporary file
-    (yielded, opened for reading) and Python's own ``print`` still reaches the real standard output:
-    the linear algebra under IPOPT prints its complaints there, which the iteration callback
-    reads (:data:`LINEAR_ALGEBRA_COMPLAINTS`) and the terminal never shows."""
+    (yielded): the linear algebra under IPOPT prints its complaints there, which the iteration
+    callback reads (:data:`LINEAR_ALGEBRA_COMPLAINTS`) and the terminal never shows. The rest of
+    that text (IPOPT's log, if asked for) is written to the standard output after the block.
+    Python's ``print`` to a standard output on fd 1 still reaches it as it happens."""
     import tempfile
 
+    try:
+        python_on_fd1 = sys.stdout.fileno() == 1
+    except (AttributeError, OSError, ValueError):     # a notebook's or a test's capture
+        python_on_fd1 = False
     sys.stdout.flush()
     _flush_c_stdio()
     saved = os.dup(1)
     with tempfile.TemporaryFile() as sink, open(saved, "w", closefd=False) as real_stdout:
         os.dup2(sink.fileno(), 1)
         try:
-            with contextlib.redirect_stdout(real_stdout):
+            with contextlib.redirect_stdout(real_stdout) if python_on_fd1 else contextlib.nullcontext():
                 yield sink
                 real_stdout.flush()
         finally:
             _flush_c_stdio()
             os.dup2(saved, 1)
+            sink.seek(0)
+            kept = [line for line in sink.read().splitlines(keepends=True)
+                    if not any(c in line for c in LINEAR_ALGEBRA_COMPLAINTS)]
+            if kept:
+                os.write(saved, b"".join(kept))
             os.close(saved)
 
 

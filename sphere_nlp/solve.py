@@ -231,7 +231,8 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         for a corner whose target is small, :func:`floor_bounds`) and e >= area_floor x 4 pi / t
         per triangle; 0 disables a floor. A triangle of the start below the floor is lifted to it
         when ``area_floor`` is given (the floor then holds at the end), else only if it is within
-        ``settings.max_floor_lift`` of it (by default none: it keeps its own size less 10% as bound).
+        ``settings.max_floor_lift`` of it (by default none: it keeps its own size as bound, less
+        ``settings.below_floor_slack`` in log e).
 
     Returns
     -------
@@ -615,7 +616,9 @@ def margin_stage(context, nlp, x_start):
     ``x_start`` keep their own size less 10% as bound (:func:`margin_restart`). The floors
     (:func:`floor_bounds`) are the margin of each corner and a lower bound on each log e; a corner
     of the start below its floor by more than ``max_margin_lift`` in the log keeps its own size less
-    10% as bound, a triangle below the area floor is lifted to it (:func:`area_floor_restart`).
+    10% as bound; a triangle below the area floor by at most ``max_floor_lift`` in the log is
+    lifted to it, one further below keeps its own size, less ``below_floor_slack``
+    (:func:`area_floor_restart`).
 
     Returns
     -------
@@ -626,7 +629,8 @@ def margin_stage(context, nlp, x_start):
     restart, log_u_lower, _ = margin_restart(x_start, x_start, context.n_faces, nlp.angle_margin,
                                              context.settings.max_margin_lift, log_floor=context.log_u_floor)
     restart, context.log_e_lower = area_floor_restart(restart, context.n_faces, context.log_e_floor,
-                                                      context.settings.max_floor_lift)
+                                                      context.settings.max_floor_lift,
+                                                      context.settings.below_floor_slack)
     run = windowed_solve(context, nlp, restart, "margin", inequalities=True, log_u_lower=log_u_lower,
                          first_options=context.first_options, log_e_lower=context.log_e_lower)
     return run, log_u_lower
@@ -685,7 +689,8 @@ def equality_fallback(context, nlp, x_start, x0):
                                                          context.settings.max_margin_lift, any_lift=True,
                                                          log_floor=context.log_u_floor)
     restart, context.log_e_lower = area_floor_restart(restart, context.n_faces, context.log_e_floor,
-                                                      context.settings.max_floor_lift)
+                                                      context.settings.max_floor_lift,
+                                                      context.settings.below_floor_slack)
     run = windowed_solve(context, nlp, restart, "margin", inequalities=True, log_u_lower=log_u_lower,
                          warm_from=run if from_equality else None, log_e_lower=context.log_e_lower)
     return run, True, log_u_lower
@@ -812,11 +817,13 @@ def margin_restart(x_equality, x_start, n_faces, angle_margin, max_lift=DEFAULT_
     return restart, log_u_lower, from_equality
 
 
-def area_floor_restart(x, n_faces, log_e_floor, max_lift=DEFAULT_SETTINGS.max_margin_lift):
+def area_floor_restart(x, n_faces, log_e_floor, max_lift=DEFAULT_SETTINGS.max_margin_lift,
+                       slack=DEFAULT_SETTINGS.below_floor_slack):
     """The area floor's bounds on log e for a stage starting at x, and x just inside them.
 
     As for the corners (:func:`margin_restart`): a triangle below its floor by less than
-    ``max_lift`` in log e is lifted to it, one further below keeps its own size less 10% as bound.
+    ``max_lift`` in log e is lifted to it, one further below keeps its own size as bound, less
+    ``slack`` in log e.
 
     Returns
     -------
@@ -832,7 +839,7 @@ def area_floor_restart(x, n_faces, log_e_floor, max_lift=DEFAULT_SETTINGS.max_ma
     """
     restart = np.array(x, float)
     log_e = restart[3 * n_faces:]
-    log_e_lower = np.where(log_e < log_e_floor - max_lift, log_e - 0.1, log_e_floor)
+    log_e_lower = np.where(log_e < log_e_floor - max_lift, log_e - slack, log_e_floor)
     restart[3 * n_faces:] = np.maximum(log_e, log_e_lower + 1e-3)
     return restart, log_e_lower
 
