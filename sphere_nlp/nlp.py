@@ -203,9 +203,9 @@ def _stdout_silenced():
 
 # What the BLAS under MUMPS (CasADi's bundled OpenBLAS) prints, to the C standard output, when
 # MUMPS hands it a matrix of impossible dimensions ("** On entry to DTRSV parameter number 6 had
-# an illegal value"; it then returns without computing, and IPOPT goes on with a wrong step), and
-# what MUMPS itself prints on an error return.
-LINEAR_ALGEBRA_COMPLAINTS = (b"had an illegal value", b"ERROR RETURN")
+# an illegal value"; it then returns without computing, and IPOPT goes on with a wrong step).
+# MUMPS's own error returns are IPOPT's to handle (it retries with more memory), not these.
+LINEAR_ALGEBRA_COMPLAINTS = (b"had an illegal value",)
 # The status of a run stopped because the linear algebra under IPOPT complained.
 LINEAR_SOLVER_FAILED = "Linear_Solver_Failed"
 
