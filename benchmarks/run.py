@@ -4,6 +4,7 @@
     python benchmarks/run.py --quick          # the meshes up to ~8k vertices only
     python benchmarks/run.py --cases knight.off spot.obj --modes original-angles
     python benchmarks/run.py --no-straightforward --cases --loop-from-coarse --modes original-areas
+    python benchmarks/run.py --no-straightforward --cases koala.obj armadillo.obj --limbs --append   # limbed bodies
     python benchmarks/run.py ... --max-time 1200 --on-limit project   # stop each stage at 20 min, certified
 
 Each case runs in its own subprocess (so peak memory is per case) with a wall-clock cap; a case
@@ -34,6 +35,9 @@ SHARED_CASES = ["knight.off", "spot.obj", "bunny.off", "max_planck.obj", "elepha
                 "cheburashka.off", "hand_closed.obj", "brain_lh_pial_fsaverage5.off",
                 "armadillo_remeshed.obj", "armadillo.obj", "nefertiti.obj", "penguin.obj", "koala.obj"]
 QUICK_CASES = SHARED_CASES[:7]
+# tests/meshgen.py's LIMBED_BODIES (--limbs): a round body with limbs of 10-30 radii, some clawed;
+# tests/test_limbs.py's slow cases.
+LIMBED_CASES = ("limbs:22k", "limbs:27k", "limbs:50k")
 
 WORKER = r"""
 import json, os, sys, time, resource
@@ -46,6 +50,10 @@ mesh = spec["mesh"]
 if mesh.startswith("ellipsoid:"):
     V, F = icosphere(int(mesh.split(":")[1]))
     mesh = (V * np.array([1.0, 1.6, 0.7]), F)
+elif mesh.startswith("limbs:"):
+    sys.path.insert(0, os.path.join(%(root)r, "tests"))
+    from meshgen import LIMBED_BODIES, limbed_body
+    mesh = limbed_body(**LIMBED_BODIES[mesh.split(":", 1)[1]])
 t0 = time.perf_counter()
 # Where the run is, for the parent to report if the case hits its cap: the stages so far with their
 # iteration counts and the current stage's last iteration (rewritten at most every 2 s).
@@ -157,7 +165,7 @@ def run_case(mesh, mode, formulation, cap_s, start=None, report_every_s=60.0, ma
 
 def mesh_label(mesh):
     """Short table name: the file name, 'ellipsoid:N', or 'loop:<file name>' for the subdivided case."""
-    if mesh.startswith("ellipsoid"):
+    if mesh.startswith(("ellipsoid", "limbs:")):
         return mesh
     if mesh.startswith("loop:"):
         return "loop:" + Path(mesh[5:]).name
@@ -347,6 +355,9 @@ def main():
     ap.add_argument("--loop-from-coarse", action="store_true",
                     help="also run the Loop armadillo started from armadillo's own solution (sphere_nlp.hierarchy); "
                          "its total time includes that coarse solve")
+    ap.add_argument("--limbs", nargs="*", choices=LIMBED_CASES, metavar="CASE",
+                    help="also run tests/meshgen.py's limbed bodies (default all: %s), in each of --modes"
+                         % ", ".join(LIMBED_CASES))
     ap.add_argument("--max-time", type=float, metavar="S",
                     help="IPOPT wall-clock limit per stage, passed to sphere_nlp.parameterize (with --on-limit)")
     ap.add_argument("--on-limit", choices=("fail", "project"), default="fail",
@@ -370,6 +381,8 @@ def main():
         for k in args.sizes:
             jobs += [("ellipsoid:%d" % k, "original-angles", "log-chord", None),
                      ("ellipsoid:%d" % k, "original-angles", "faithful", "linear")]
+    if args.limbs is not None:
+        jobs += [(case, m, "log-chord", None) for case in (args.limbs or LIMBED_CASES) for m in args.modes]
     if args.loop:
         jobs += [("loop:" + str(SHARED / "armadillo.obj"), m, "log-chord", None) for m in args.modes]
     if args.loop_from_coarse:

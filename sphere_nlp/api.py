@@ -16,7 +16,7 @@ import numpy as np
 from . import errors, interrupts
 from .certify import Certificate, certify, spherical_angles
 from .repair import prepare_mesh
-from .metrics import distortion_summary, usability_summary
+from .metrics import distortion_summary, shrinkage_summary, usability_summary
 from .mesh_io import (check_mesh_path, load_mesh, write_image, write_json, write_material, write_mesh,
                       write_npz)
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, status_kind
@@ -280,6 +280,11 @@ class SphericalParameterization:
         :meth:`distortion`)."""
         return usability_summary(_unit_size(self.input_vertices), self.vertices, self.faces, self.target_angles)
 
+    def shrinkage(self):
+        """Whether the map shrank parts of the surface past use (an angle mode's limbs), and the
+        line that says so and names the mode that keeps them (:func:`sphere_nlp.metrics.shrinkage_summary`)."""
+        return shrinkage_summary(_unit_size(self.input_vertices), self.vertices, self.faces, self.target)
+
     def write_png(self, path, measure=None, view=None, up=None):
         """Write a PNG: the input mesh and the sphere coloured by distortion, and a checkerboarded mesh.
 
@@ -326,6 +331,7 @@ class SphericalParameterization:
             "recovery": self.recovery,
             "area_route": self.area_route,
             "usability": self.usability() if np.isfinite(self.vertices).all() else None,
+            "shrinkage": self.shrinkage() if np.isfinite(self.vertices).all() else None,
             "success": bool(self.success),
             "converged": bool(self.converged),
             "status": self.status,

@@ -441,6 +441,9 @@ def run(args, progress):
     note = floor_note(result, bool(args.corner_floor))
     if note:
         progress.say(note)
+    shrunk = result.shrinkage()["note"]
+    if shrunk:
+        progress.say(shrunk)
     return 0
 
 

@@ -313,3 +313,58 @@ def usability_summary(mesh_vertices, sphere_vertices, faces, target_angles=None,
         "mean_abs_angle_diff_deg": summary["mean_abs_angle_diff_deg"],
         "mean_abs_log_area": summary["mean_abs_log_area"],
     }
+
+
+# A map has shrunk a region past use when its triangles average more than a factor e from their
+# share of the surface (mean |log area ratio| above this), or when this much of the surface's 3D
+# area lies in triangles below SHRUNK_SHARE of their share: a texture or a resampling shows one
+# texel there. Conformal maps shrink protrusions exponentially in their length over their girth.
+SHRUNK_MEAN_ABS_LOG_AREA = 1.0
+SHRUNK_SHARE = 1e-6
+SHRUNK_SURFACE_FRACTION = 1e-3
+
+
+def shrinkage_summary(mesh_vertices, sphere_vertices, faces, target):
+    """How much of the surface a map has shrunk past use, and the line that says so (or None).
+
+    Parameters
+    ----------
+    mesh_vertices, sphere_vertices : (n, 3) arrays
+    faces : (t, 3) int array
+    target : str
+        The run's mode: the line is for the angle modes, whose maps are free to shrink regions
+        (an area mode keeps each triangle's share).
+
+    Returns
+    -------
+    dict (JSON-safe)
+        ``mean_abs_log_area`` (:func:`distortion_summary`'s), ``shrunk_triangles`` (below
+        :data:`SHRUNK_SHARE` of their share of the surface), ``shrunk_surface_fraction`` (their
+        share of the 3D area), ``shrunk`` (either past its threshold, in an angle mode) and
+        ``note``: one line naming the mode that keeps the regions, or None.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> V, F = octahedron()
+    >>> s = shrinkage_summary(V, V, F, "original-angles")
+    >>> s["shrunk"], s["shrunk_triangles"], s["note"]
+    (False, 0, None)
+    """
+    mesh_vertices, faces = _arrays(mesh_vertices, faces)
+    log_ratio = area_log_ratio(mesh_vertices, sphere_vertices, faces)
+    finite = np.isfinite(log_ratio)
+    mean_abs = float(np.abs(log_ratio[finite]).mean()) if finite.any() else float("nan")
+    small = finite & (log_ratio < np.log(SHRUNK_SHARE))
+    share = normalised_areas_3d(mesh_vertices, faces) / (4 * np.pi)
+    fraction = float(share[small].sum())
+    shrunk = bool(target.endswith("-angles") and (mean_abs > SHRUNK_MEAN_ABS_LOG_AREA
+                                                  or fraction >= SHRUNK_SURFACE_FRACTION))
+    note = None
+    if shrunk:
+        note = ("the map shrank parts of the surface past use: %.3g%% of its area lies in triangles below "
+                "%g of their share (mean |log area ratio| %.2f), as a conformal map does to limbs and "
+                "other protrusions; --target original-areas keeps every part its size"
+                % (100 * fraction, SHRUNK_SHARE, mean_abs))
+    return {"mean_abs_log_area": _json_float(mean_abs), "shrunk_triangles": int(small.sum()),
+            "shrunk_surface_fraction": fraction, "shrunk": shrunk, "note": note}

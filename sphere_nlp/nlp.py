@@ -62,7 +62,8 @@ DEFAULT_FORMULATION = "log-chord"
 # What the return status of a run means, the one table of them: "solved" (a result), "limit"
 # (stopped short by the caller's max_iter or max_time; its iterate can still be projected onto the
 # constraints), "diverged" (stopped by the divergence watch, see AngleNLP.solve); any other status
-# (IPOPT's failures) is "failed".
+# (IPOPT's failures, and LINEAR_SOLVER_FAILED: stopped when the BLAS under MUMPS complained) is
+# "failed".
 STATUS_KINDS = {
     "Solve_Succeeded": "solved",
     "Solved_To_Acceptable_Level": "solved",
@@ -108,7 +109,9 @@ class IpoptRun:
         Constraint and bound multipliers there.
     objective : float
     status : str
-        IPOPT's return status, or "Diverged" (see :data:`STATUS_KINDS`).
+        IPOPT's return status, "Diverged" (see :data:`STATUS_KINDS`), or "Linear_Solver_Failed"
+        (the linear algebra under IPOPT printed a complaint, :data:`LINEAR_ALGEBRA_COMPLAINTS`: the
+        run stops at its next iteration, and the text is not shown).
     iterations : int
     time_s, build_s : float
         Seconds in IPOPT, and in building the solver before it.
@@ -198,6 +201,59 @@ def _stdout_silenced():
         os.close(saved)
 
 
+# What the BLAS under MUMPS (CasADi's bundled OpenBLAS) prints, to the C standard output, when
+# MUMPS hands it a matrix of impossible dimensions ("** On entry to DTRSV parameter number 6 had
+# an illegal value"; it then returns without computing, and IPOPT goes on with a wrong step).
+# MUMPS's own error returns are IPOPT's to handle (it retries with more memory), not these.
+LINEAR_ALGEBRA_COMPLAINTS = (b"had an illegal value",)
+# The status of a run stopped because the linear algebra under IPOPT complained.
+LINEAR_SOLVER_FAILED = "Linear_Solver_Failed"
+
+
+@contextlib.contextmanager
+def _c_stdout_captured():
+    """Inside the block, what C code writes to the standard output (fd 1) goes to a temporary file
+    (yielded): the linear algebra under IPOPT prints its complaints there, which the iteration
+    callback reads (:data:`LINEAR_ALGEBRA_COMPLAINTS`) and the terminal never shows. The rest of
+    that text (IPOPT's log, if asked for) is written to the standard output after the block.
+    Python's ``print`` to a standard output on fd 1 still reaches it as it happens."""
+    import tempfile
+
+    try:
+        python_on_fd1 = sys.stdout.fileno() == 1
+    except (AttributeError, OSError, ValueError):     # a notebook's or a test's capture
+        python_on_fd1 = False
+    sys.stdout.flush()
+    _flush_c_stdio()
+    saved = os.dup(1)
+    with tempfile.TemporaryFile() as sink, open(saved, "w", closefd=False) as real_stdout:
+        os.dup2(sink.fileno(), 1)
+        try:
+            with contextlib.redirect_stdout(real_stdout) if python_on_fd1 else contextlib.nullcontext():
+                yield sink
+                real_stdout.flush()
+        finally:
+            _flush_c_stdio()
+            os.dup2(saved, 1)
+            sink.seek(0)
+            kept = [line for line in sink.read().splitlines(keepends=True)
+                    if not any(c in line for c in LINEAR_ALGEBRA_COMPLAINTS)]
+            if kept:
+                os.write(saved, b"".join(kept))
+            os.close(saved)
+
+
+def _complained(sink, position):
+    """(whether the C output written to ``sink`` after ``position`` holds a linear-algebra
+    complaint, the new position)."""
+    _flush_c_stdio()
+    size = os.fstat(sink.fileno()).st_size
+    if size <= position:
+        return False, position
+    text = os.pread(sink.fileno(), size - position, position)
+    return any(c in text for c in LINEAR_ALGEBRA_COMPLAINTS), size
+
+
 def _flush_c_stdio():
     try:
         import ctypes
@@ -260,6 +316,10 @@ class _ProgressCallback(ca.Callback):
         self.iterations_above = 0
         self.aborted = False
         self.best = None
+        # The file C's standard output goes to during the run (_c_stdout_captured), how much of it
+        # has been read, and whether it showed a linear-algebra complaint.
+        self.c_output, self.c_output_read = None, 0
+        self.linear_solver_failed = False
 
     def get_n_in(self):
         return ca.nlpsol_n_out()
@@ -306,6 +366,11 @@ class _ProgressCallback(ca.Callback):
             return [1]                      # non-zero asks IPOPT to stop
         if interrupts.stop_requested():     # a signal, or the run's deadline (see interrupts)
             return [1]
+        if self.c_output is not None:
+            complained, self.c_output_read = _complained(self.c_output, self.c_output_read)
+            if complained:
+                self.linear_solver_failed = True
+                return [1]
         return [0]
 
 
@@ -737,15 +802,22 @@ class _AngleProblem:
             # A signal inside IPOPT is only recorded: raised inside a callback, CasADi would catch
             # it and IPOPT step around it; the iteration callback stops IPOPT instead
             # (interrupts.stop_requested), and the signal is raised once IPOPT has returned.
-            with interrupts.defer_signals():
+            with interrupts.defer_signals(), _c_stdout_captured() as c_output:
+                callback.c_output = c_output
                 out = solver(**args)
+                complained, _ = _complained(c_output, callback.c_output_read)
+                callback.linear_solver_failed |= complained
         finally:
+            callback.c_output = None
             if self._numeric is not None:
                 self._numeric.modify_hessian = None
         interrupts.raise_if_interrupted()
         stats = solver.stats()
         status = stats.get("return_status", "unknown")
-        if callback.aborted:
+        if callback.linear_solver_failed:
+            # The BLAS under MUMPS refused its arguments: every step from here is wrong.
+            status = LINEAR_SOLVER_FAILED
+        elif callback.aborted:
             status = "Diverged"
         elif status == "User_Requested_Stop" and interrupts.deadline_passed():
             status = "Maximum_WallTime_Exceeded"

@@ -94,9 +94,10 @@ class AngleSolution:
         projected onto the constraints (stage "projection"), feasible but not optimal; ``status``
         is then the stopped stage's (e.g. "Maximum_WallTime_Exceeded").
     floor_corners, floor_triangles : int
-        Log-chord: corners whose u, triangles whose e end at, below or within 1% of their floor
-        (:func:`floor_bounds`: ``corner_floor`` x beta, more for small targets, or the margin;
-        ``area_floor`` x 4 pi / t).
+        Log-chord: corners whose u end at, below or within 1% of their floor, triangles whose e end
+        within 1% of theirs (:func:`floor_bounds`: ``corner_floor`` x beta, more for small targets,
+        or the margin; ``area_floor`` x 4 pi / t; a triangle the start had further below keeps
+        its own size as bound, ``max_floor_lift``).
     """
 
     angles: np.ndarray
@@ -228,7 +229,10 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         Override ``settings.corner_floor`` (in the area modes ``settings.area_mode_corner_floor``)
         and ``settings.area_floor``: log-chord bounds u >= corner_floor x beta per corner (more
         for a corner whose target is small, :func:`floor_bounds`) and e >= area_floor x 4 pi / t
-        per triangle; 0 disables a floor.
+        per triangle; 0 disables a floor. A triangle of the start below the floor is lifted to it
+        when ``area_floor`` is given (the floor then holds at the end), else only if it is within
+        ``settings.max_floor_lift`` of it (by default none: it keeps its own size as bound, less
+        ``settings.below_floor_slack`` in log e).
     excess_band : ((t,) array, (t,) array), optional
         Log-chord: lower and upper bounds on every triangle's log excess, kept by the margin stage
         and the projection (the polish of an authalic map keeps each triangle's area ratio from
@@ -248,7 +252,8 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         if corner_floor == 0:                    # no corner floors at all: the margin alone
             settings = settings.replace(small_corner_floor=0.0, area_mode_small_corner_floor=0.0, sliver_band=0.0)
     if area_floor is not None:
-        settings = settings.replace(area_floor=float(area_floor))
+        # A floor asked for holds at the end: every triangle of the start below it is lifted to it.
+        settings = settings.replace(area_floor=float(area_floor), max_floor_lift=np.inf)
     if on_limit not in ON_LIMIT:
         raise ValueError("on_limit must be one of %s, not %r" % (ON_LIMIT, on_limit))
     if start is None:
@@ -623,7 +628,9 @@ def margin_stage(context, nlp, x_start):
     ``x_start`` keep their own size less 10% as bound (:func:`margin_restart`). The floors
     (:func:`floor_bounds`) are the margin of each corner and a lower bound on each log e; a corner
     of the start below its floor by more than ``max_margin_lift`` in the log keeps its own size less
-    10% as bound, a triangle below the area floor is lifted to it (:func:`area_floor_restart`).
+    10% as bound; a triangle below the area floor by at most ``max_floor_lift`` in the log is
+    lifted to it, one further below keeps its own size, less ``below_floor_slack``
+    (:func:`area_floor_restart`).
 
     Returns
     -------
@@ -634,7 +641,8 @@ def margin_stage(context, nlp, x_start):
     restart, log_u_lower, _ = margin_restart(x_start, x_start, context.n_faces, nlp.angle_margin,
                                              context.settings.max_margin_lift, log_floor=context.log_u_floor)
     restart, context.log_e_lower = area_floor_restart(restart, context.n_faces, context.log_e_floor,
-                                                      context.settings.max_floor_lift)
+                                                      context.settings.max_floor_lift,
+                                                      context.settings.below_floor_slack)
     run = windowed_solve(context, nlp, restart, "margin", inequalities=True, log_u_lower=log_u_lower,
                          first_options=context.first_options, log_e_lower=context.log_e_lower)
     return run, log_u_lower
@@ -693,7 +701,8 @@ def equality_fallback(context, nlp, x_start, x0):
                                                          context.settings.max_margin_lift, any_lift=True,
                                                          log_floor=context.log_u_floor)
     restart, context.log_e_lower = area_floor_restart(restart, context.n_faces, context.log_e_floor,
-                                                      context.settings.max_floor_lift)
+                                                      context.settings.max_floor_lift,
+                                                      context.settings.below_floor_slack)
     run = windowed_solve(context, nlp, restart, "margin", inequalities=True, log_u_lower=log_u_lower,
                          warm_from=run if from_equality else None, log_e_lower=context.log_e_lower)
     return run, True, log_u_lower
@@ -821,11 +830,13 @@ def margin_restart(x_equality, x_start, n_faces, angle_margin, max_lift=DEFAULT_
     return restart, log_u_lower, from_equality
 
 
-def area_floor_restart(x, n_faces, log_e_floor, max_lift=DEFAULT_SETTINGS.max_margin_lift):
+def area_floor_restart(x, n_faces, log_e_floor, max_lift=DEFAULT_SETTINGS.max_margin_lift,
+                       slack=DEFAULT_SETTINGS.below_floor_slack):
     """The area floor's bounds on log e for a stage starting at x, and x just inside them.
 
     As for the corners (:func:`margin_restart`): a triangle below its floor by less than
-    ``max_lift`` in log e is lifted to it, one further below keeps its own size less 10% as bound.
+    ``max_lift`` in log e is lifted to it, one further below keeps its own size as bound, less
+    ``slack`` in log e.
 
     Returns
     -------
@@ -841,7 +852,7 @@ def area_floor_restart(x, n_faces, log_e_floor, max_lift=DEFAULT_SETTINGS.max_ma
     """
     restart = np.array(x, float)
     log_e = restart[3 * n_faces:]
-    log_e_lower = np.where(log_e < log_e_floor - max_lift, log_e - 0.1, log_e_floor)
+    log_e_lower = np.where(log_e < log_e_floor - max_lift, log_e - slack, log_e_floor)
     restart[3 * n_faces:] = np.maximum(log_e, log_e_lower + 1e-3)
     return restart, log_e_lower
 
@@ -1037,10 +1048,13 @@ def _stage_record(name, run):
 
 
 def _floor_counts(context, angles, excess):
-    """Corners and triangles at, below or within 1% of their floors (context.log_u_floor, log_e_floor)."""
+    """Corners at, below or within 1% of their floors (context.log_u_floor), triangles within 1% of
+    theirs (context.log_e_floor): a triangle the start had below it keeps its own size as bound
+    (``max_floor_lift``) and is not on the floor."""
     with np.errstate(divide="ignore", invalid="ignore"):
+        log_e = np.log(excess)
         return (int(np.sum(_log_u(angles, excess) <= context.log_u_floor + 0.01)),
-                int(np.sum(np.log(excess) <= context.log_e_floor + 0.01)))
+                int(np.sum((log_e <= context.log_e_floor + 0.01) & (log_e >= context.log_e_floor - 0.01))))
 
 
 def _solution(context, angles, excess, run, stopped_status=None):

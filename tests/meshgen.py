@@ -247,3 +247,88 @@ def with_cap_sliver(vertices, faces, face, gap=2e-4, where=0.3):
     k = len(vertices)
     F = np.vstack([np.delete(faces, face, axis=0), [[a, b, k], [b, c, k], [c, a, k]]])
     return np.vstack([vertices, new]), F
+
+
+# The limbed bodies of 20k-50k vertices that the slow tests and benchmarks/run.py --limbs map.
+LIMBED_BODIES = {"22k": dict(n_limbs=4, radius=0.15), "27k": dict(n_limbs=6, radius=0.15),
+                 "50k": dict(n_limbs=8, radius=0.2, n_claws=4)}
+
+
+def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions=5, n_claws=2,
+                claw_length=2.0, taper=1.0):
+    """A round body with ``n_limbs`` long limbs, some ending in claws: the shape of a scanned animal.
+
+    The body is an icosphere of radius 1 (``subdivisions``). Each limb replaces the cap of the
+    body within ``radius`` (as a chord: the limb's radius) of a direction spread over the sphere (a
+    Fibonacci lattice) by a tube of the cap's rim, extruded straight out in rings one edge length
+    apart, closed by the cap itself moved to its end (a rounded tip of the body's own triangles).
+    The limbs' lengths over their radius run evenly over ``length_ratios``; each ring's
+    cross-section is ``taper`` times the last one's. The first ``n_claws`` limbs end in claws: three
+    of the tip's vertices pulled out by ``claw_length`` (x the limb's radius) along the limb, each
+    a spike of needle triangles. Closed, genus 0, outward-oriented and a function of the arguments;
+    vertices about 10 x 4**subdivisions plus the tubes' (subdivisions 5 and the defaults: ~28k).
+
+    The conformal factor of a limb falls as exp(-length / radius) or faster along it: the
+    default mode shrinks its tip to 1e-9 and less of its share, where the area floor binds.
+    """
+    V, F = icosphere(subdivisions)
+    n_body, V, F = len(V), list(V), F.copy()
+    k = np.arange(n_limbs) + 0.5
+    z = 1 - 2 * k / n_limbs
+    phi = np.pi * (1 + 5 ** 0.5) * k
+    directions = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
+    ratios = np.linspace(length_ratios[0], length_ratios[-1], n_limbs)
+    edge = np.sqrt(4 * (4 * np.pi / len(F)) / np.sqrt(3))           # the body's mean edge length
+    cos_cap = np.sqrt(1 - radius ** 2)
+    faces = [F]
+    for limb, (d, ratio) in enumerate(zip(directions, ratios)):
+        P = np.asarray(V)
+        body = faces[0]
+        inside = P @ d > cos_cap
+        inside[n_body:] = False                                        # the body's own vertices only
+        cap = inside[body].any(axis=1)
+        cap_faces, faces[0] = body[cap], body[~cap]
+        # The rim: the cap's half-edges whose twin is in the body (a -> b in the cap, b -> a outside).
+        kept = {(int(a), int(b)) for f in faces[0] for a, b in zip(f, np.roll(f, -1))}
+        following = {int(a): int(b) for f in cap_faces for a, b in zip(f, np.roll(f, -1)) if (int(b), int(a)) in kept}
+        rim = [next(iter(following))]
+        while following[rim[-1]] != rim[0]:
+            rim.append(following[rim[-1]])
+        rim = np.array(rim)
+
+        def moved(points, steps, length):
+            """Points moved ``length`` out along d, their cross-section scaled by taper**steps."""
+            along = points @ d
+            return (along + length)[:, None] * d + taper ** steps * (points - along[:, None] * d)
+
+        n_rings = max(2, int(round(ratio * radius / (edge * np.sqrt(3) / 2))))
+        step = ratio * radius / n_rings
+        previous = rim
+        for j in range(1, n_rings + 1):
+            ring = np.arange(len(V), len(V) + len(rim))
+            V.extend(moved(P[rim], j, j * step))
+            a, b = previous, np.roll(previous, -1)
+            a2, b2 = ring, np.roll(ring, -1)
+            faces.append(np.r_[np.c_[a, b, b2], np.c_[a, b2, a2]])
+            previous = ring
+        # The tip: the cap moved to the tube's end, its rim the last ring.
+        interior = np.setdiff1d(np.unique(cap_faces), rim)
+        new_index = dict(zip(rim.tolist(), previous.tolist()))
+        tip_points = moved(P[interior], n_rings, n_rings * step)
+        if limb < n_claws:
+            # Claws: the three tip vertices nearest the directions 120 degrees apart at 60% of the
+            # cap's radius, pulled out along the limb.
+            frame = np.linalg.svd(np.eye(3) - np.outer(d, d))[0][:, :2]
+            for c in range(3):
+                w = frame @ [np.cos(2 * np.pi * c / 3), np.sin(2 * np.pi * c / 3)]
+                target = cos_cap * d + 0.6 * radius * w
+                nearest = int(np.argmin(np.linalg.norm(P[interior] - target, axis=1)))
+                tip_points[nearest] += claw_length * radius * d
+        new_index.update(zip(interior.tolist(), range(len(V), len(V) + len(interior))))
+        V.extend(tip_points)
+        faces.append(np.vectorize(new_index.__getitem__)(cap_faces))
+    V, F = np.array(V, float), np.vstack(faces).astype(np.int64)
+    # The body's vertices inside a cap are left unused: renumber the used ones in order.
+    used = np.zeros(len(V), bool)
+    used[F.ravel()] = True
+    return V[used], (np.cumsum(used) - 1)[F]

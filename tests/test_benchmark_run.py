@@ -54,6 +54,7 @@ def test_capped_hierarchy_row_says_where_each_level_was():
 
 
 @pytest.mark.parametrize("mesh, label", [("/x/armadillo.obj", "armadillo.obj"), ("ellipsoid:4", "ellipsoid:4"),
+                                         ("limbs:22k", "limbs:22k"),
                                          ("loop:/x/armadillo.obj", "loop:armadillo.obj"),
                                          ("loop-from-coarse:/x/armadillo.obj",
                                           "loop:armadillo.obj from its parent's solution")])

@@ -225,12 +225,36 @@ def test_tentacle_mesh_is_closed_genus_zero_with_thin_limbs():
     assert corner_angles(V, F).min() > np.radians(5)          # thin, but not badly shaped triangles
 
 
-def test_default_mode_certifies_the_tentacle_mesh_above_the_area_floor():
-    # Without the area floor the solved angles ask for tentacle tips that double precision cannot
-    # place (the certificate finds flipped triangles); with it every triangle keeps 1e-12 of the
-    # mean area and no corner falls below 0.1 x its target.
+def test_default_mode_keeps_the_tentacle_tips_at_their_start_size_below_the_area_floor():
+    # The conformal start shrinks the tentacles' tips below the area floor, and they are placed
+    # there (certified): by default they keep their own size as bound, less a factor e
+    # (below_floor_slack), instead of being lifted off the solution set (max_floor_lift); every
+    # other triangle keeps the floor.
+    from sphere_nlp.connectivity import validate_mesh
+    from sphere_nlp.solve import solve_angles
+    from sphere_nlp.targets import make_targets
+
     V, F = tentacle_creature()
+    V, F, c, _ = validate_mesh(V, F)
+    solution = solve_angles(c, make_targets("original-angles", V, F, c.vertex_degree), vertices=V)
+    floor = DEFAULT_SETTINGS.area_floor * 4 * np.pi / len(F)
+    started_below = solution.initial_excess < floor
+    assert solution.success and started_below.sum() > 10
+    assert np.all(solution.excess[~started_below] >= floor * (1 - 1e-9))
+    slack = np.exp(-DEFAULT_SETTINGS.below_floor_slack)
+    assert np.all(solution.excess[started_below] >= slack * solution.initial_excess[started_below] * (1 - 1e-9))
     result = parameterize((V, F), "original-angles")
+    assert result.success and result.recovery is None
+    assert result.usability()["corners_below_fraction"] == 0
+
+
+def test_an_area_floor_asked_for_holds_on_the_tentacle_mesh():
+    # Without the area floor the solved angles ask for tentacle tips that double precision cannot
+    # place (the certificate finds flipped triangles); with it asked for, every triangle keeps
+    # 1e-12 of the mean area (the start's smaller ones lifted to it) and no corner falls below 0.1 x
+    # its target.
+    V, F = tentacle_creature()
+    result = parameterize((V, F), "original-angles", area_floor=DEFAULT_SETTINGS.area_floor)
     assert result.success
     check = result.usability()
     assert check["min_area_ratio"] >= DEFAULT_SETTINGS.area_floor * (1 - 1e-6)
