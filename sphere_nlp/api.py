@@ -544,7 +544,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         stage stops at its first iteration past it, so the call returns after at most one more
         iteration, the unfolding and the certificate (and with ``on_limit="project"`` the
         projection, which may take a fifth of ``max_time`` plus 5 s more). The area modes have a
-        default budget (:func:`sphere_nlp.polish.default_budget`, 1.5 ms a vertex, at least 10 s),
+        default budget (:func:`sphere_nlp.polish.default_budget`, 1.3 ms a vertex, at least 5 s),
         shared by the authalic stage and the NLP's polish; ``math.inf`` runs both to the end.
     on_limit : {"fail", "project"}
         When the main (margin) stage reaches ``max_iter`` or ``max_time``: fail (default: SolveError

@@ -97,7 +97,7 @@ def build_parser():
     limits.add_argument("--max-time", type=_seconds, metavar="S",
                         help="wall-clock limit of the whole run from the start of the process, seconds (> 0; "
                              "the start map is cut short and IPOPT stops at its first iteration past it). "
-                             "The area modes have a budget by default (1.5 ms a vertex, at least 10 s) for "
+                             "The area modes have a budget by default (1.3 ms a vertex, at least 5 s) for "
                              "their authalic map and its polish; 'none' lets the polish run to IPOPT's optimum")
     limits.add_argument("--on-limit", choices=ON_LIMIT, default="fail",
                         help="when the main stage reaches a limit: fail (default), or project its last "

@@ -41,6 +41,7 @@ from .authalic import authalic_map
 from .certify import certify
 from .geometry import signed_solid_angles
 from .settings import DEFAULT_SETTINGS
+from .nlp import status_kind
 from .solve import AngleSolution, max_constraint_violation, objective_value, solve_angles
 from .starts import angles_and_excess, starting_positions
 from .unfold import unfold
@@ -158,6 +159,8 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
 def _rejection(polished, connectivity, targets, authalic_error, authalic_objective):
     """Why the polish's angles are not the answer before they are unfolded, or None."""
     if not polished.success:
+        if status_kind(polished.status) == "limit":
+            return "the budget ended before the polish's iterate was projected onto the constraints"
         return "the polish failed (IPOPT %s)" % polished.status
     if polished.objective > authalic_objective:
         return "the polish did not lower objective (9)"

@@ -287,8 +287,8 @@ class SolverSettings:
     projection_iterations: int = 50
     obtuse_angle: float = np.pi / 2
     start_gauge: str = "excess"
-    area_mode_budget_per_vertex: float = 1.5e-3
-    area_mode_min_budget: float = 10.0
+    area_mode_budget_per_vertex: float = 1.3e-3
+    area_mode_min_budget: float = 5.0
     authalic_share: float = 0.75
     authalic_stall: float = 1e-3
     polish_slack: float = 1e-3
