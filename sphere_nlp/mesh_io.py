@@ -464,19 +464,11 @@ def output_transaction():
     ...     os.listdir(d)
     []
     """
-    global _staged
     if _staged is not None:
         yield
         return
-    staged = _staged = []
-    try:
+    with staged_outputs() as staged:
         yield
-    except BaseException:
-        _staged = None
-        for tmp, _ in staged:
-            _remove_quietly(tmp)
-        raise
-    _staged = None
     _commit(staged)
 
 
