@@ -37,9 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import interrupts
-from .authalic import authalic_map
+from .authalic import authalic_map, mean_abs_log_area
 from .certify import certify
-from .geometry import signed_solid_angles
 from .settings import DEFAULT_SETTINGS
 from .nlp import status_kind
 from .solve import AngleSolution, max_constraint_violation, objective_value, solve_angles
@@ -76,11 +75,6 @@ class AreaRoute:
     positions: np.ndarray
     unfold_info: dict
     record: dict
-
-
-def _area_error(positions, faces, target_excess):
-    omega = signed_solid_angles(positions, faces)
-    return float(np.mean(np.abs(np.log(omega / target_excess)))) if (omega > 0).all() else math.inf
 
 
 def authalic_route(connectivity, vertices, targets, budget=None, settings=None, progress=None, on_stage=None,
@@ -124,11 +118,11 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
                                     max_time=None if math.isinf(left) else left, **solve_keywords)
     answer, reason, positions, unfold_info = "authalic", "no time left for the polish", stage.positions, {}
     if polished is not None:
-        reason = _rejection(polished, connectivity, targets, stage.mean_abs_log_area, authalic_objective)
+        reason = _rejection(polished, targets, stage.mean_abs_log_area, authalic_objective)
         if reason is None:
             candidate, info = unfold(connectivity, polished.angles, excess=polished.excess)
             candidate = candidate / np.linalg.norm(candidate, axis=1, keepdims=True)
-            error = _area_error(candidate, faces, targets.excess)
+            error = mean_abs_log_area(candidate, faces, targets.excess)
             if not certify(candidate, faces).valid:
                 reason = "the polished map failed its certificate"
             elif error > stage.mean_abs_log_area:
@@ -150,13 +144,13 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
         "polish": None if polished is None else {
             "status": polished.status, "converged": bool(polished.converged), "iterations": polished.iterations,
             "objective": polished.objective, "seconds": round(time.perf_counter() - polish_began, 3)},
-        "objective": solution.objective, "mean_abs_log_area": _area_error(positions, faces, targets.excess),
+        "objective": solution.objective, "mean_abs_log_area": mean_abs_log_area(positions, faces, targets.excess),
         "seconds": round(time.perf_counter() - began, 3)})
     solution.start = "authalic"
     return AreaRoute(solution=solution, positions=positions, unfold_info=unfold_info, record=record)
 
 
-def _rejection(polished, connectivity, targets, authalic_error, authalic_objective):
+def _rejection(polished, targets, authalic_error, authalic_objective):
     """Why the polish's angles are not the answer before they are unfolded, or None."""
     if not polished.success:
         if status_kind(polished.status) == "limit":
