@@ -187,7 +187,7 @@ def tentacle_creature(n_tentacles=8, segments=10, step=0.25, taper=0.97, subdivi
     ``step`` along its normal (a prism of three long sides), its cross-section scaled by ``taper``
     at every step. The tentacles grow from the faces nearest ``n_tentacles`` well-spread directions
     (a Fibonacci lattice). Length over perimeter is about 10 with the defaults, so the conformal
-    factor at a tip is about exp(-2 pi 10): the limb category of issue-style meshes (koala, octopus).
+    factor at a tip is about exp(-2 pi 10): the limbs of scanned animals (koala, octopus).
     """
     V, F = icosphere(subdivisions)
     V, F = [p for p in V], [tuple(f) for f in F]

@@ -1,4 +1,4 @@
-"""Usable maps (issue: no collapsed triangles, no precision failures): the corner weighting of the
+"""Usable maps (no collapsed triangles, no precision failures): the corner weighting of the
 angle term, the corner and area floors as bounds, and the independent usability checker."""
 
 import numpy as np
