@@ -26,7 +26,7 @@ from .solve import check_floors, ON_LIMIT, solve_angles
 from .starts import checked_positions
 from .targets import MODES, make_targets
 from .texture import checker_image, spherical_uv, split_at_seams
-from .unfold import unfold
+from .unfold import sphere_positions
 
 
 def solve_failure_message(status, iterations):
@@ -353,27 +353,6 @@ class SphericalParameterization:
     def write_report(self, path):
         """Write :meth:`report` as JSON."""
         write_json(path, self.report())
-
-
-def sphere_positions(connectivity, angles, excess):
-    """Unit-sphere positions unfolded from solved angles, and the unfold statistics.
-
-    All NaN (and no statistics) when the angles cannot be unfolded (non-finite or non-positive),
-    so that the certificate reports the failure.
-
-    Examples
-    --------
-    >>> from sphere_nlp.shapes import octahedron
-    >>> from sphere_nlp.connectivity import build_connectivity
-    >>> V, F = octahedron()
-    >>> X, _ = sphere_positions(build_connectivity(F, 6), np.full((8, 3), np.pi / 2), np.full(8, np.pi / 2))
-    >>> bool(np.allclose(np.linalg.norm(X, axis=1), 1))
-    True
-    """
-    if not (np.isfinite(angles).all() and (angles > 0).all()):
-        return np.full((connectivity.n_vertices, 3), np.nan), {}
-    positions, unfold_info = unfold(connectivity, angles, excess=excess)
-    return positions / np.linalg.norm(positions, axis=1, keepdims=True), unfold_info
 
 
 def max_angle_error(positions, faces, angles):

@@ -38,8 +38,8 @@ import scipy.sparse.linalg as spla
 
 from . import interrupts
 from .certify import certify
-from .conformal import _inverse_stereographic
-from .geometry import signed_solid_angles
+from .conformal import _assemble_edge_weights, _inverse_stereographic
+from .geometry import rotation_between, signed_solid_angles
 from .untangle import untangle
 
 
@@ -72,13 +72,7 @@ def stretch_laplacian(positions, faces, target_share):
     twice_area = np.linalg.norm(np.cross(to_next, to_prev), axis=2)
     cot = np.einsum("tjk,tjk->tj", to_next, to_prev) / twice_area
     image_share = twice_area[:, 0] / twice_area[:, 0].sum()
-    weight = 0.5 * cot * (image_share / target_share)[:, None]
-    n = len(positions)
-    i = np.roll(faces, -1, axis=1).ravel()
-    j = np.roll(faces, -2, axis=1).ravel()
-    w = weight.ravel()
-    W = sp.coo_matrix((np.r_[w, w], (np.r_[i, j], np.r_[j, i])), shape=(n, n)).tocsr()
-    return (sp.diags(np.asarray(W.sum(axis=1)).ravel()) - W).tocsr()
+    return _assemble_edge_weights(faces, 0.5 * cot * (image_share / target_share)[:, None], len(positions))
 
 
 def stretch_energy_map(positions, faces, target_excess, max_steps=50, radius=1.3, patience=3, deadline=None):
@@ -98,7 +92,7 @@ def stretch_energy_map(positions, faces, target_excess, max_steps=50, radius=1.3
     # Rotate so that no vertex sits at the north pole, which the projection sends to infinity.
     pole = S[np.argmax(S[:, 2])]
     if pole[2] > 1 - 1e-6:
-        S = S @ _rotation_taking(pole, np.array([0.0, -np.sqrt(0.5), np.sqrt(0.5)])).T
+        S = S @ rotation_between(pole, np.array([0.0, -np.sqrt(0.5), np.sqrt(0.5)])).T
     orientation = np.sign(signed_solid_angles(S, faces).sum())
 
     def energy(X):
@@ -134,16 +128,6 @@ def stretch_energy_map(positions, faces, target_excess, max_steps=50, radius=1.3
         if E < best_energy:
             best, best_energy, since_best = S, E, 0
     return best
-
-
-def _rotation_taking(a, b):
-    """A rotation matrix R with R a = b for unit vectors a, b (Rodrigues)."""
-    v = np.cross(a, b)
-    c = float(_dot(a, b))
-    if np.linalg.norm(v) < 1e-12:
-        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
-    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + K + K @ K / (1 + c)
 
 
 # --- Riemannian descent ---------------------------------------------------------------------------------
@@ -232,11 +216,8 @@ class _Preconditioner:
         to_prev = np.roll(corners, 1, axis=1) - corners
         cot = np.einsum("tjk,tjk->tj", to_next, to_prev) / np.linalg.norm(np.cross(to_next, to_prev), axis=2)
         curvature = energy.area_coeff * 2 / np.exp(ratio + energy.log_target)
-        w = (0.5 * np.maximum(cot, 0.05) * curvature[:, None]).ravel()
-        i, j = np.roll(faces, -1, axis=1).ravel(), np.roll(faces, -2, axis=1).ravel()
-        W = sp.coo_matrix((np.r_[w, w], (np.r_[i, j], np.r_[j, i])), shape=(n, n)).tocsr()
-        diagonal = np.asarray(W.sum(axis=1)).ravel()
-        self.factor = spla.splu((sp.diags(diagonal * (1 + 1e-3)) - W).tocsc())
+        L = _assemble_edge_weights(faces, 0.5 * np.maximum(cot, 0.05) * curvature[:, None], n)
+        self.factor = spla.splu((L + 1e-3 * sp.diags(L.diagonal())).tocsc())
 
     def __call__(self, v):
         n = self.factor.shape[0]

@@ -107,3 +107,23 @@ def triangles_with_angles(angles):
     P[:, 2, 0] = side[:, 1] * np.cos(beta[:, 0])
     P[:, 2, 1] = side[:, 1] * np.sin(beta[:, 0])
     return P
+
+
+def rotation_between(a, b):
+    """The rotation matrix R (3, 3) turning unit vector ``a`` to unit vector ``b`` by the smallest
+    angle (Rodrigues); for opposite vectors the half-turn about X, or about Y when they lie on X.
+
+    >>> R = rotation_between(np.array([0.0, 1, 0]), np.array([0.0, 0, 1]))
+    >>> (R @ [0, 1, 0]).round(12).tolist(), (R @ [0, 0, 1]).round(12).tolist()
+    ([0.0, 0.0, 1.0], [0.0, -1.0, 0.0])
+    """
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    axis = np.cross(a, b)
+    sine, cosine = np.linalg.norm(axis), float(np.dot(a, b))
+    if sine < 1e-12:
+        if cosine > 0:
+            return np.eye(3)
+        return np.diag([1.0, -1.0, -1.0]) if abs(a[0]) < 0.9 else np.diag([-1.0, 1.0, -1.0])
+    k = axis / sine
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + sine * K + (1 - cosine) * K @ K

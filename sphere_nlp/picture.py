@@ -34,6 +34,7 @@ rest depth-sorted by mplot3d (painter's algorithm), exact for the sphere and goo
 
 import numpy as np
 
+from .geometry import rotation_between
 from .mesh_io import atomic_output
 from .texture import CHECKER_COLOURS as TEXTURE_CHECKER_COLOURS
 
@@ -182,14 +183,7 @@ def upright_rotation(up):
     >>> (R @ [0, 1, 0]).round(12).tolist(), (R @ [0, 0, 1]).round(12).tolist()
     ([0.0, 0.0, 1.0], [0.0, -1.0, 0.0])
     """
-    u = up_vector(up)
-    axis = np.cross(u, [0.0, 0.0, 1.0])
-    sine, cosine = np.linalg.norm(axis), u[2]
-    if sine < 1e-12:
-        return np.eye(3) if cosine > 0 else np.diag([1.0, -1.0, -1.0])    # half-turn about X
-    k = axis / sine
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + sine * K + (1 - cosine) * K @ K
+    return rotation_between(up_vector(up), np.array([0.0, 0.0, 1.0]))
 
 
 def _normalised(points):

@@ -43,7 +43,7 @@ from .settings import DEFAULT_SETTINGS
 from .nlp import status_kind
 from .solve import AngleSolution, max_constraint_violation, objective_value, solve_angles
 from .starts import angles_and_excess, starting_positions
-from .unfold import unfold
+from .unfold import sphere_positions
 
 
 def default_budget(n_vertices, settings=DEFAULT_SETTINGS):
@@ -120,8 +120,7 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
     if polished is not None:
         reason = _rejection(polished, targets, stage.mean_abs_log_area, authalic_objective)
         if reason is None:
-            candidate, info = unfold(connectivity, polished.angles, excess=polished.excess)
-            candidate = candidate / np.linalg.norm(candidate, axis=1, keepdims=True)
+            candidate, info = sphere_positions(connectivity, polished.angles, polished.excess)
             error = mean_abs_log_area(candidate, faces, targets.excess)
             if not certify(candidate, faces).valid:
                 reason = "the polished map failed its certificate"

@@ -644,3 +644,24 @@ def unfold(connectivity, angles, seed_face=None, average=True, correction=True, 
         info["corrected_max_angle_error"], info["corrected_rms_angle_error"] = angle_errors(positions, F, A)
         info["corrected_max_chord_mismatch"] = chord_mismatch(positions, connectivity.edges, chords)
     return positions, info
+
+
+def sphere_positions(connectivity, angles, excess):
+    """Unit-sphere positions unfolded from solved angles, and the unfold statistics.
+
+    All NaN (and no statistics) when the angles cannot be unfolded (non-finite or non-positive),
+    so that the certificate reports the failure.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> from sphere_nlp.connectivity import build_connectivity
+    >>> V, F = octahedron()
+    >>> X, _ = sphere_positions(build_connectivity(F, 6), np.full((8, 3), np.pi / 2), np.full(8, np.pi / 2))
+    >>> bool(np.allclose(np.linalg.norm(X, axis=1), 1))
+    True
+    """
+    if not (np.isfinite(angles).all() and (angles > 0).all()):
+        return np.full((connectivity.n_vertices, 3), np.nan), {}
+    positions, unfold_info = unfold(connectivity, angles, excess=excess)
+    return positions / np.linalg.norm(positions, axis=1, keepdims=True), unfold_info
