@@ -456,10 +456,14 @@ class _Context:
         return max_constraint_violation(self.connectivity, *nlp.unpack(run.x))
 
     def excess_bounds(self, lower, upper):
-        """Bounds on log e: (lower, upper) within ``log_e_band`` where the caller gave one."""
-        if self.log_e_band is None:
-            return lower, upper
-        return np.maximum(lower, self.log_e_band[0]), np.minimum(upper, self.log_e_band[1])
+        return within_band(lower, upper, self.log_e_band)
+
+
+def within_band(lower, upper, band):
+    """Bounds on log e: (lower, upper) narrowed to ``band`` (lower, upper) where one is given."""
+    if band is None:
+        return lower, upper
+    return np.maximum(lower, band[0]), np.minimum(upper, band[1])
 
 
 def run_ipopt(nlp, name, x, settings, stages=None, **solve_keywords):
@@ -1033,11 +1037,9 @@ def project_onto_constraints(connectivity, targets, nlp, x, formulation, dropped
     projection_options["max_iter"] = settings.projection_iterations
     t = len(excess)
     log_e = x[3 * t:]
-    lower, upper = log_e - excess_window, log_e + excess_window
-    if excess_band is not None:
-        lower, upper = np.maximum(lower, excess_band[0]), np.minimum(upper, excess_band[1])
     return run_ipopt(projection, "projection", x, settings, stages, inequalities=True, options=projection_options,
-                     progress=progress, excess_bounds=(lower, upper),
+                     progress=progress, excess_bounds=within_band(log_e - excess_window, log_e + excess_window,
+                                                                  excess_band),
                      log_u_lower=log_u_lower)
 
 
