@@ -56,7 +56,7 @@ FORMULATIONS = ("log-chord", "substituted", "faithful")
 # _LogChordValues) or "casadi" (the same functions mapped in CasADi's interpreter; the reference).
 EVALUATIONS = ("numpy", "casadi")
 # The Hessian handed to IPOPT by the log-chord form (see AngleNLP's ``hessian``).
-HESSIANS = ("exact", "clipped")
+HESSIANS = ("exact", "clipped", "clipped-corners")
 DEFAULT_FORMULATION = "log-chord"
 
 # What the return status of a run means, the one table of them: "solved" (a result), "limit"
@@ -959,7 +959,7 @@ class LogChordNLP(_AngleProblem):
         corners (sin alpha_j = sin(u_k + u_l), sin u_j = sin(u_k + u_l + e/2), equal under (6)),
         which stays well-conditioned near alpha = pi; :func:`sphere_nlp.solve.solve_angles` flags
         the corners above pi/2 where a stage starts. Same feasible set and optima either way.
-    hessian : {"exact", "clipped"}
+    hessian : {"exact", "clipped", "clipped-corners"}
         The Hessian handed to IPOPT. ``"exact"`` (default) is the Lagrangian's.
         ``"clipped"`` leaves out the negative part of the term that the logarithmic unknowns add:
         with x = exp(z) (x = u or e), the Hessian in z is D H_x D + diag(dL/dz), D = diag(x), and
@@ -969,6 +969,9 @@ class LogChordNLP(_AngleProblem):
         term made the Hessian indefinite on every iteration of the area modes' long middle, and
         IPOPT's inertia correction added 1e-2..1e-1 times the identity instead, a step more like
         gradient descent (see :class:`sphere_nlp.settings.SolverSettings`' ``area_mode_hessian``).
+        ``"clipped-corners"`` clips only the corners' log u and keeps the log e entries exact: their
+        negative part is what keeps the first steps short while a start is far from the optimum
+        (the angle modes' ``angle_mode_hessian``).
     evaluation : {"numpy", "casadi"}
         How IPOPT's function and derivative values are computed: by numpy over all
         triangles at once (default, faster), or by CasADi's interpreter one triangle at a time
@@ -1098,10 +1101,11 @@ class LogChordNLP(_AngleProblem):
         triangle_jacobian = ca.Function("sphere_nlp_triangle_jac", inputs,
                                         [ca.vec(ca.densify(jacobian_8x4))])
         hessian_4x4 = ca.densify(ca.hessian(ca.dot(weights, h_sx), z)[0])
-        if hessian == "clipped":
+        if hessian != "exact":
             # Each unknown z_c belongs to this triangle only, so this is dL/dz of the whole problem.
             lagrangian_gradient = ca.mtimes(jacobian_8x4.T, weights)
-            hessian_4x4 = hessian_4x4 - ca.diag(ca.fmin(lagrangian_gradient, 0))
+            clipped = np.array([1.0, 1.0, 1.0, 1.0 if hessian == "clipped" else 0.0])
+            hessian_4x4 = hessian_4x4 - ca.diag(ca.fmin(lagrangian_gradient, 0) * clipped)
         upper = [(i, j) for j in range(4) for i in range(j + 1)]          # column-major upper triangle
         triangle_hessian = ca.Function("sphere_nlp_triangle_hess", inputs + [weights],
                                        [ca.vertcat(*[hessian_4x4[i, j] for i, j in upper])])

@@ -206,9 +206,9 @@ class SolverSettings:
         conformal start is at 2-7 on the shared meshes, area-mode optima at 0.02-0.05.
     near_start_options : mapping
         Added to the first margin run's IPOPT options when the walk is skipped (a small barrier).
-    area_mode_hessian : {"exact", "clipped"}
-        The Hessian the area modes hand IPOPT (:class:`sphere_nlp.nlp.LogChordNLP`'s ``hessian``);
-        the angle modes use the exact one.
+    area_mode_hessian, angle_mode_hessian : {"exact", "clipped"}
+        The Hessian the area and the angle modes hand IPOPT (:class:`sphere_nlp.nlp.LogChordNLP`'s
+        ``hessian``).
     projection_iterations : int
         Iteration cap of the projection of a stage stopped by the caller's limits (``max_iter``
         does not apply to it; ``max_time`` does).
@@ -284,6 +284,7 @@ class SolverSettings:
     area_walk_distance: float = 0.1
     near_start_options: MappingProxyType = _frozen(NEAR_START_OPTIONS)
     area_mode_hessian: str = "clipped"
+    angle_mode_hessian: str = "clipped-corners"
     projection_iterations: int = 50
     obtuse_angle: float = np.pi / 2
     start_gauge: str = "excess"

@@ -420,7 +420,7 @@ class _Context:
                    log_u_band=sliver_band_bounds(targets, settings),
                    options=options, warm_options=warm_options, first_options=first_options, progress=progress,
                    initial=initial, dropped=dropped, walk=walk,
-                   hessian=settings.area_mode_hessian if area_mode else "exact",
+                   hessian=settings.area_mode_hessian if area_mode else settings.angle_mode_hessian,
                    window=settings.excess_window if area_mode else settings.angle_mode_excess_window)
 
     @property

@@ -74,9 +74,11 @@ def test_structured_derivatives_match_casadi_ad(dropped, with_obtuse, weighting)
         np.testing.assert_allclose(np.triu(hess_upper), np.triu(hess_ad), rtol=1e-9, atol=1e-9)
 
 
-def test_clipped_hessian_is_the_exact_one_less_the_negative_log_term():
+@pytest.mark.parametrize("hessian", ["clipped", "clipped-corners"])
+def test_clipped_hessian_is_the_exact_one_less_the_negative_log_term(hessian):
     # hessian="clipped" drops min(dL/dz, 0) from the diagonal of the Lagrangian's Hessian in the
-    # log unknowns z (the part the change of variables adds, which vanishes at KKT points); checked
+    # log unknowns z (the part the change of variables adds, which vanishes at KKT points);
+    # "clipped-corners" only in the corners' log u, keeping the log e entries exact. Checked
     # against CasADi's automatic differentiation, for both evaluations.
     import casadi as ca
 
@@ -87,17 +89,20 @@ def test_clipped_hessian_is_the_exact_one_less_the_negative_log_term():
     angles = np.full((c.n_faces, 3), np.pi / 3) + 0.1 * rng.random((c.n_faces, 3))
     lam_f = 0.7
     for evaluation in ("numpy", "casadi"):
-        nlp = AngleNLP(c, targets, "log-chord", dropped_vertices=[0, 5, 11], hessian="clipped",
+        nlp = AngleNLP(c, targets, "log-chord", dropped_vertices=[0, 5, 11], hessian=hessian,
                        evaluation=evaluation)
         x = nlp.pack(angles, angles.sum(1) - np.pi + 0.02)
         lam_g = rng.standard_normal(nlp.n_equalities)
         X = nlp._x
         f, g = nlp._symbolic_problem()[:2]
         lagrangian = lam_f * f + ca.dot(ca.DM(lam_g), g)
-        gradient, hessian = (m.full() for m in ca.Function("ad", [X], [ca.gradient(lagrangian, X),
-                                                                      ca.hessian(lagrangian, X)[0]])(x))
-        expected = hessian - np.diag(np.minimum(gradient.ravel(), 0.0))
-        assert (gradient < -1e-3).sum() > 10                   # the clipping does something here
+        gradient, exact = (m.full() for m in ca.Function("ad", [X], [ca.gradient(lagrangian, X),
+                                                                    ca.hessian(lagrangian, X)[0]])(x))
+        clipped_unknowns = np.arange(nlp.n_variables) < (4 if hessian == "clipped" else 3) * c.n_faces
+        expected = exact - np.diag(np.where(clipped_unknowns, np.minimum(gradient.ravel(), 0.0), 0.0))
+        assert (gradient[clipped_unknowns] < -1e-3).sum() > 10      # the clipping does something here
+        if hessian == "clipped-corners":
+            assert (gradient[~clipped_unknowns] < -1e-3).sum() > 10      # and leaves some out
         derivatives = nlp._numpy_problem()[2] if evaluation == "numpy" else nlp._symbolic_problem()[3]
         clipped = derivatives["hess_lag"](x, ca.DM.zeros(0, 1), lam_f, lam_g).full()
         np.testing.assert_allclose(np.triu(clipped), np.triu(expected), rtol=1e-9, atol=1e-9)
