@@ -33,7 +33,7 @@ SHARED = ROOT.parent / "shared" / "meshes"
 
 SHARED_CASES = ["knight.off", "spot.obj", "bunny.off", "max_planck.obj", "elephant.obj",
                 "cheburashka.off", "hand_closed.obj", "brain_lh_pial_fsaverage5.off",
-                "armadillo_remeshed.obj", "armadillo.obj", "nefertiti.obj", "penguin.obj", "koala.obj"]
+                "armadillo_remeshed.obj", "armadillo.obj", "nefertiti.obj", "penguin.obj", "koala.obj", "cat.obj"]
 QUICK_CASES = SHARED_CASES[:7]
 # tests/meshgen.py's LIMBED_BODIES (--limbs): a round body with limbs of 10-30 radii, some clawed;
 # tests/test_limbs.py's slow cases.
@@ -248,7 +248,7 @@ def status_text(row):
     if route:
         # The area modes' authalic route (sphere_nlp.polish): which map is the answer, and the polish's end.
         polish = route.get("polish") or {}
-        budget = "%g-s budget" % route["budget"] if route.get("budget") else "no budget"
+        budget = "%.3g-s budget" % route["budget"] if route.get("budget") else "no budget"
         if route["answer"] == "polished":
             end = "optimum" if polish.get("converged") else "budget's end, projected"
             return "authalic + polish (%s, polished to IPOPT's %s)" % (budget, end)
@@ -268,6 +268,15 @@ def status_text(row):
         status += " (in %s at iteration %d: objective %.6g, violation %.1e)" % (
             stage, iteration, progress["objective"], progress["violation"])
     return status
+
+
+def existing_note(path_md):
+    """The note above the table of an earlier results file ("" if none), which an --append keeps."""
+    path = Path(path_md)
+    if not path.exists():
+        return ""
+    before_table = path.read_text().split("\n| mesh |")[0].strip().split("\n\n")
+    return before_table[3] if len(before_table) > 3 else ""
 
 
 def write_tables(rows, path_md, note=""):
@@ -366,7 +375,8 @@ def main():
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--append", action="store_true",
                     help="add rows to the existing results file (replacing rows of the same cases)")
-    ap.add_argument("--note", default="", help="one line about this run's conditions, put above the table")
+    ap.add_argument("--note", default="", help="one line about this run's conditions, put above the table "
+                                                "(--append keeps the file's note unless given)")
     ap.add_argument("--sizes", nargs="*", type=int, default=[4, 5],
                     help="icosphere subdivisions of the straightforward-vs-default ellipsoids")
     args = ap.parse_args()
@@ -374,7 +384,7 @@ def main():
         sys.exit("benchmarks need ../shared/meshes beside the checkout")
     cases = (QUICK_CASES if args.quick else SHARED_CASES) if args.cases is None else args.cases
     rows = json.loads(Path(args.out + ".json").read_text()) if args.append else []
-    note = args.note
+    note = args.note or (existing_note(args.out + ".md") if args.append else "")
     commit = current_commit()
     jobs = [(str(SHARED / c), m, "log-chord", None) for c in cases for m in args.modes]
     if not args.no_straightforward:
