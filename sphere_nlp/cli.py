@@ -307,11 +307,16 @@ def _max_time(args):
     return math.inf if args.max_time == "none" else args.max_time
 
 
+def _time_limit(args):
+    """--max-time as a limit on the run: seconds, or None for none given and for 'none'."""
+    return None if args.max_time == "none" else args.max_time
+
+
 def check_arguments(args):
     """Option values the parser cannot check itself (UsageError), before the mesh is read."""
     from .api import _check_arguments
 
-    seconds = None if args.max_time == "none" else args.max_time
+    seconds = _time_limit(args)
     for option, value in (("--max-time", seconds), ("--angle-weight", args.angle_weight),
                           ("--area-weight", args.area_weight)):
         if value is not None and not math.isfinite(value):
@@ -402,7 +407,7 @@ def run(args, progress):
         except errors.MeshInputError as exc:
             raise errors.UsageError("--start: %s" % exc) from None
     # --max-time counts from the start of the process: imports, reading and the start map included.
-    seconds = None if args.max_time in (None, "none") else args.max_time
+    seconds = _time_limit(args)
     remaining = None if seconds is None else seconds - interrupts.program_elapsed()
     with interrupts.deadline(remaining):
         result = parameterize(str(input_path), target=args.target, angle_weight=args.angle_weight,
