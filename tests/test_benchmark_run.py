@@ -115,3 +115,17 @@ def test_anytime_trace_ends_at_the_certified_optimum_and_its_row_reads_each_frac
     assert len(cells) == 10 and cells[0] == "| cylinder.off" and cells[-1].endswith(" |")
     at_three_quarters = [r for r in rows if r["seconds"] <= 0.75 * total][-1]
     assert cells[-1].split(" / ")[1].rstrip(" |") == "%.3f" % at_three_quarters["mean_abs_log_area"]
+
+
+def test_the_tables_note_survives_a_rewrite_and_a_file_without_one_has_none(tmp_path):
+    # --append without --note keeps the note above the table (run.existing_note).
+    rows = [{"mesh": "a.off", "mode": "equal-angles", "formulation": "log-chord", "iterations": 3,
+             "timings_s": {"total": 1.0}, "objective": 1.0, "certificate": {"valid": True}, "commit": "c"}]
+    path = tmp_path / "t.md"
+    assert bench.existing_note(str(path)) == ""
+    bench.write_tables(rows, str(path))
+    assert bench.existing_note(str(path)) == ""
+    bench.write_tables(rows, str(path), "Every row ran alone.")
+    assert bench.existing_note(str(path)) == "Every row ran alone."
+    bench.write_tables(rows, str(path), bench.existing_note(str(path)))
+    assert path.read_text().count("Every row ran alone.") == 1
