@@ -143,12 +143,12 @@ class SolverSettings:
     max_floor_lift : float
         A triangle whose start is below the area floor by less than this in log e is lifted to it
         (a start off the solution set), one further below keeps its own size as bound, less
-        ``below_floor_slack``. The default (0) lifts none: the start is a certified spherical triangulation, so its
-        triangles are representable at their own size, and lifting a limb's tip by orders of
-        magnitude puts the start far off the solution set (a limbed body of 27k vertices: over
-        570 iterations and 900 s against 27; docs/tuning.md). An area floor given explicitly
-        (``area_floor=``, ``--area-floor``, and the recovery's) lifts every one (inf), so that it
-        holds at the end.
+        ``below_floor_slack``. The default (0) lifts none: the start is a certified spherical
+        triangulation, so its triangles are representable at their own size, and lifting a limb's
+        tip by orders of magnitude puts the start far off the solution set (a limbed body of 27k
+        vertices: over 570 iterations and 900 s against 27; docs/tuning.md). An area floor given
+        explicitly (``area_floor=``, ``--area-floor``, and the recovery's) lifts every one (inf),
+        so that it holds at the end.
     below_floor_slack : float
         How far in log e a triangle that keeps its own size as bound (not lifted) may still shrink:
         its bound is its start's e x exp(-below_floor_slack). At 1 the bound does not bind where the
@@ -206,9 +206,9 @@ class SolverSettings:
         conformal start is at 2-7 on the shared meshes, area-mode optima at 0.02-0.05.
     near_start_options : mapping
         Added to the first margin run's IPOPT options when the walk is skipped (a small barrier).
-    area_mode_hessian, angle_mode_hessian : {"exact", "clipped"}
+    area_mode_hessian, angle_mode_hessian : {"exact", "clipped", "clipped-corners"}
         The Hessian the area and the angle modes hand IPOPT (:class:`sphere_nlp.nlp.LogChordNLP`'s
-        ``hessian``).
+        ``hessian``; docs/tuning.md).
     projection_iterations : int
         Iteration cap of the projection of a stage stopped by the caller's limits (``max_iter``
         does not apply to it; ``max_time`` does).
