@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
+from . import sparse_lu
 from .certify import Certificate, certify
 from .conformal import (beltrami_coefficient, conformal_map, cotan_laplacian, linear_beltrami_solver,  # noqa: F401
                         lumped_mass)
@@ -222,7 +222,7 @@ def cmcf_map(vertices, faces, steps=20, time_step=1.0):
     for _ in range(steps):
         mass = lumped_mass(X, faces)
         with np.errstate(divide="ignore", invalid="ignore"):
-            X = spla.splu((mass + time_step * stiffness).tocsc()).solve(mass @ X)
+            X = sparse_lu.solve(mass + time_step * stiffness, mass @ X)
             X = _normalise_surface(X, faces)
         if not np.isfinite(X).all():
             break

@@ -6,7 +6,8 @@ The solver's default start (:func:`sphere_nlp.starts.starting_positions`) and a 
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
+
+from . import sparse_lu
 
 from .geometry import scatter_to_vertices, triangle_areas, triangles_with_angles
 
@@ -65,8 +66,16 @@ def _dirichlet_solve(K, values, fixed):
     x = np.array(values, dtype=float)
     K = K.tocsr()
     rhs = -(K[free][:, ~free] @ x[~free])
-    x[free] = spla.splu(K[free][:, free].tocsc()).solve(np.asarray(rhs, dtype=float))
+    x[free] = sparse_lu.solve(K[free][:, free], np.asarray(rhs, dtype=float))
     return x
+
+
+def _inversion(z):
+    """z / |z|^2 for plane points (n, 2): the south-pole stereographic coordinates of the points whose
+    north-pole ones are z, computed without the cancellation in 1 + S_z near the south pole
+    (inf for z = 0, the south pole itself)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return z / np.einsum("ij,ij->i", z, z)[:, None]
 
 
 def _inverse_stereographic(z, from_pole=1.0):
@@ -160,20 +169,27 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None):
        come out about equally large (the reference implementation's "optimal big triangle size").
     2. **South-pole step.** The harmonic map is least conformal near the north pole, where the fixed big
        triangle forces it. Project stereographically from the south pole, so that this region lies near
-       the origin; compute the Beltrami coefficient mu of the map from that plane back to the surface;
-       then solve the linear Beltrami solver for a map with that same mu while pinning the vertices
-       nearest the south pole (a fraction ``fixed_fraction`` of them, at least 3), whose positions were
-       already conformal. The composition has Beltrami coefficient ~0, i.e. is conformal everywhere.
-       Inverse stereographic projection from the south pole gives the sphere.
+       the origin, and solve for a map with the Beltrami coefficient mu of the map from that plane back
+       to the surface while pinning the vertices nearest the south pole (a fraction
+       ``fixed_fraction`` of them, at least 3), whose positions were already conformal. The
+       composition has Beltrami coefficient ~0, i.e. is conformal everywhere. Inverse stereographic
+       projection from the south pole gives the sphere.
 
-    If the Beltrami solve produces non-finite values the pinned set is enlarged 5 times once, then the
-    step is skipped (the reference implementation does the same). The map is not guaranteed to be
+    FLASH solves step 2 with the linear Beltrami solver (:func:`linear_beltrami_solver`) on mu from
+    :func:`beltrami_coefficient`. Per linear element, the solver's matrix A(mu) is sqrt(det g) g^-1
+    for the metric g that the face's 3D triangle pulls back to the plane, so its element matrix is the
+    3D triangle's own cotangent matrix: step 2 is step 1's Laplacian with the south-pole boundary
+    values (equal to 1e-13 on bunny.off). This form never divides by a plane triangle's area,
+    which is zero where a thin limb's tip collapses in the plane (mu there is 0/0).
+
+    If the solve is singular or not finite the pinned set is enlarged 5 times once, then the step
+    is skipped (the reference implementation does the same). The map is not guaranteed to be
     bijective: cotangent weights can be negative on obtuse meshes.
 
     With ``angles`` the map is conformal to the metric those corner angles describe instead of the
     surface's: each triangle takes the planar shape of its angles
     (:func:`sphere_nlp.geometry.triangles_with_angles`). Both steps use only each triangle's shape
-    (the cotangents and the Beltrami coefficient do not change with its size), so the triangles need
+    (the cotangents do not change with its size), so the triangles need
     not agree on their shared edges. Given an angle mode's targets this is the linearised map the
     solve is looking for: the equal modes' 2 pi / deg targets give a map far from the surface's.
 
@@ -216,13 +232,12 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None):
     boundary = np.zeros((n, 2))
     boundary[p2] = [1, 0]
     boundary[p3] = third
-    z = _dirichlet_solve(_cotan_laplacian_of_corners(faces, corners, n), boundary, [p1, p2, p3])
+    stiffness = _cotan_laplacian_of_corners(faces, corners, n)
+    z = _dirichlet_solve(stiffness, boundary, [p1, p2, p3])
     z -= z.mean(axis=0)
     # Scale the plane so the big triangle (around the north pole) and the triangle nearest the south
     # pole get about the same size on the sphere.
-    S = _inverse_stereographic(z)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w = S[:, :2] / (1 + S[:, 2:])                          # south-pole stereographic coordinates
+    w = _inversion(z)                                          # south-pole stereographic coordinates
     order = np.argsort(np.linalg.norm(z[faces], axis=2).sum(axis=1))
     inner = order[1] if order[0] == big else order[0]
 
@@ -235,21 +250,19 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None):
         z *= np.sqrt(north_side * south_side) / north_side
     S = _inverse_stereographic(z)
 
-    # Step 2: quasi-conformal correction around the north pole, in south-pole stereographic coordinates.
+    # Step 2: the harmonic map again, in south-pole stereographic coordinates, pinned near the south pole.
     by_height = np.argsort(S[:, 2])
-    plane = S[:, :2] / (1 + S[:, 2:])
-    mu = _beltrami_of_corners(plane, faces, corners)
+    plane = _inversion(z)
     count = max(round(n * fixed_fraction), 3)
     for attempt in range(2):
         fixed = by_height[:min(n, count)]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            try:
-                corrected = linear_beltrami_solver(plane, faces, mu, fixed, plane[fixed])
-            except RuntimeError:                                # singular factorisation
-                corrected = np.full_like(plane, np.nan)
-        if np.isfinite(corrected).all():
-            break
+        if not np.isfinite(plane[fixed]).all():
+            break                                            # a pinned vertex at the plane's infinity
+        try:
+            solved = _dirichlet_solve(stiffness, plane, fixed)
+        except RuntimeError:                                # singular, or not finite
+            solved = None
+        if solved is not None and np.isfinite(solved).all():
+            return _inverse_stereographic(solved, from_pole=-1.0)
         count *= 5
-    else:
-        corrected = plane
-    return _inverse_stereographic(corrected, from_pole=-1.0)
+    return S

@@ -18,9 +18,8 @@ become tiny on large, long-limbed meshes; what survives floating point is checke
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
-from . import interrupts
+from . import interrupts, sparse_lu
 
 
 def _rot90(v):
@@ -61,7 +60,7 @@ def planar_tutte(connectivity, weights, outer_face):
     inner = np.setdiff1d(np.arange(n), outer)
     L = L.tocsr()
     rhs = -L[inner][:, outer] @ P[outer]
-    P[inner] = spla.splu(L[inner][:, inner].tocsc()).solve(rhs)
+    P[inner] = sparse_lu.solve(L[inner][:, inner], rhs)
     return P
 
 
@@ -105,7 +104,7 @@ def punctured_embedding(connectivity, vertex=None):
     inner = np.setdiff1d(np.arange(n), np.r_[ring, vertex])
     if len(inner):
         rhs = -L[inner][:, ring] @ plane[ring]
-        plane[inner] = spla.splu(L[inner][:, inner].tocsc()).solve(rhs)
+        plane[inner] = sparse_lu.solve(L[inner][:, inner], rhs)
     r2 = np.sum(plane ** 2, axis=1, keepdims=True)
     X = np.c_[2 * plane, r2 - 1] / (r2 + 1)
     X[vertex] = (0.0, 0.0, 1.0)

@@ -29,8 +29,8 @@ import time
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee, shortest_path
-from scipy.sparse.linalg import splu
 
+from . import sparse_lu
 from .certify import spherical_angles
 
 
@@ -128,10 +128,13 @@ def _place_by_angle(pu, pv, angle_at_u, chord_uw):
     Works with differences from pu, never with dot products close to 1, so tiny triangles keep
     their relative accuracy (intersecting spheres does not: 1 - (pu.pv)^2 cancels; on the knight's
     equal-angles map, with excesses of 2e-13, that walk flipped 22 triangles).
+    Where pu and pv coincide in double precision (an edge shorter than its endpoints' rounding)
+    there is no direction toward v: w is NaN, and the walk's map fails its certificate.
     """
     d = pv - pu
     toward_v = d - np.einsum("ij,ij->i", d, pu)[:, None] * pu       # tangent at pu toward v
-    toward_v /= np.linalg.norm(toward_v, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        toward_v /= np.linalg.norm(toward_v, axis=1, keepdims=True)
     left = np.cross(pu, toward_v)
     half = np.clip(chord_uw / 2, 0.0, 1.0)
     arc = 2 * np.arcsin(half)
@@ -442,8 +445,8 @@ class _NormalMatrixFactor:
         H = sp.csc_matrix((blocks.ravel(), (rows, cols)), shape=(2 * n, 2 * n))
         diag = H.diagonal()
         H = H + sp.diags(damping * diag + 1e-12 * diag.mean(), format="csc")
-        self.lu = splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                       options=dict(SymmetricMode=True))
+        self.lu = sparse_lu.factorize(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                      options=dict(SymmetricMode=True))
 
     def solve(self, rhs):
         out = np.empty_like(rhs)

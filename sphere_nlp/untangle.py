@@ -42,10 +42,9 @@ from dataclasses import dataclass, asdict
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
-from . import interrupts
+from . import interrupts, sparse_lu
 from .certify import certify, signed_solid_angles
 
 # A region's boundary must lie within arccos(0.2) ~ 78 degrees of its centre for the gnomonic
@@ -367,9 +366,12 @@ def _reembed_region(positions, context, free, face_mask):
 
     W_free = W[free]
     L = (sp.diags(np.asarray(W_free.sum(axis=1)).ravel()) - W_free[:, free]).tocsc()
-    solve = spla.factorized(L)
-    W_fixed = W_free[:, fixed]
-    plane = np.vstack([np.column_stack([solve(W_fixed @ plane_fixed[:, k]) for k in range(2)]), plane_fixed])
+    try:
+        solve = sparse_lu.factorize(L).solve
+        W_fixed = W_free[:, fixed]
+        plane = np.vstack([np.column_stack([solve(W_fixed @ plane_fixed[:, k]) for k in range(2)]), plane_fixed])
+    except RuntimeError:            # singular or non-finite weights (a region of collapsed triangles)
+        return None
 
     def lift(points):
         lifted = normal + points[:len(free)] @ np.vstack([e1, e2])

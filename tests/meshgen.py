@@ -252,10 +252,19 @@ def with_cap_sliver(vertices, faces, face, gap=2e-4, where=0.3):
 # The limbed bodies of 20k-50k vertices that the slow tests and benchmarks/run.py --limbs map.
 LIMBED_BODIES = {"22k": dict(n_limbs=4, radius=0.15), "27k": dict(n_limbs=6, radius=0.15),
                  "50k": dict(n_limbs=8, radius=0.2, n_claws=4)}
+# Thinner and longer: eight legs of 20-45 radii, six clawed, like a spider or a crab scan; the
+# larger two with a tail of 60 radii narrowing 1% a ring. Their conformal maps collapse the leg
+# tips past double precision (triangles of 1e-30 of their share, zero area in the plane).
+THIN_LIMBED_BODIES = {
+    "27k": dict(n_limbs=8, radius=0.1, length_ratios=(20, 45), n_claws=6, claw_length=3.0),
+    "31k": dict(n_limbs=8, radius=0.1, length_ratios=(20, 45), n_claws=6, claw_length=3.0, tail_ratio=60),
+    "50k": dict(n_limbs=8, radius=0.14, length_ratios=(20, 45), n_claws=6, claw_length=3.0, tail_ratio=60)}
+# A small body whose conformal map collapses tip triangles to zero area in the plane (1.8k vertices).
+COLLAPSING_LIMBS = dict(n_limbs=4, radius=0.1, length_ratios=(45, 60), subdivisions=3, n_claws=4)
 
 
 def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions=5, n_claws=2,
-                claw_length=2.0, taper=1.0):
+                claw_length=2.0, taper=1.0, tail_ratio=None, tail_taper=0.99):
     """A round body with ``n_limbs`` long limbs, some ending in claws: the shape of a scanned animal.
 
     The body is an icosphere of radius 1 (``subdivisions``). Each limb replaces the cap of the
@@ -265,7 +274,9 @@ def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions
     The limbs' lengths over their radius run evenly over ``length_ratios``; each ring's
     cross-section is ``taper`` times the last one's. The first ``n_claws`` limbs end in claws: three
     of the tip's vertices pulled out by ``claw_length`` (x the limb's radius) along the limb, each
-    a spike of needle triangles. Closed, genus 0, outward-oriented and a function of the arguments;
+    a spike of needle triangles. With ``tail_ratio``, one more limb of that length over its radius
+    whose cross-section narrows by ``tail_taper`` a ring: a tail, thinner the further it goes.
+    Closed, genus 0, outward-oriented and a function of the arguments;
     vertices about 10 x 4**subdivisions plus the tubes' (subdivisions 5 and the defaults: ~28k).
 
     The conformal factor of a limb falls as exp(-length / radius) or faster along it: the
@@ -273,15 +284,17 @@ def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions
     """
     V, F = icosphere(subdivisions)
     n_body, V, F = len(V), list(V), F.copy()
-    k = np.arange(n_limbs) + 0.5
-    z = 1 - 2 * k / n_limbs
+    n_tails = 0 if tail_ratio is None else 1
+    k = np.arange(n_limbs + n_tails) + 0.5
+    z = 1 - 2 * k / (n_limbs + n_tails)
     phi = np.pi * (1 + 5 ** 0.5) * k
     directions = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
-    ratios = np.linspace(length_ratios[0], length_ratios[-1], n_limbs)
+    ratios = np.r_[np.linspace(length_ratios[0], length_ratios[-1], n_limbs), [tail_ratio] * n_tails]
+    tapers = np.r_[np.full(n_limbs, taper), [tail_taper] * n_tails]
     edge = np.sqrt(4 * (4 * np.pi / len(F)) / np.sqrt(3))           # the body's mean edge length
     cos_cap = np.sqrt(1 - radius ** 2)
     faces = [F]
-    for limb, (d, ratio) in enumerate(zip(directions, ratios)):
+    for limb, (d, ratio, limb_taper) in enumerate(zip(directions, ratios, tapers)):
         P = np.asarray(V)
         body = faces[0]
         inside = P @ d > cos_cap
@@ -297,9 +310,9 @@ def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions
         rim = np.array(rim)
 
         def moved(points, steps, length):
-            """Points moved ``length`` out along d, their cross-section scaled by taper**steps."""
+            """Points moved ``length`` out along d, their cross-section scaled by limb_taper**steps."""
             along = points @ d
-            return (along + length)[:, None] * d + taper ** steps * (points - along[:, None] * d)
+            return (along + length)[:, None] * d + limb_taper ** steps * (points - along[:, None] * d)
 
         n_rings = max(2, int(round(ratio * radius / (edge * np.sqrt(3) / 2))))
         step = ratio * radius / n_rings

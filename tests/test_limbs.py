@@ -8,13 +8,15 @@ import os
 import subprocess
 import sys
 import textwrap
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from meshgen import LIMBED_BODIES, ellipsoid, limbed_body
+from meshgen import COLLAPSING_LIMBS, LIMBED_BODIES, ellipsoid, limbed_body
 from sphere_nlp import parameterize
+from sphere_nlp.certify import certify
 from sphere_nlp.connectivity import build_connectivity
 from sphere_nlp.errors import SolveError
 from sphere_nlp.settings import DEFAULT_SETTINGS
@@ -34,6 +36,37 @@ def test_the_limbed_body_is_closed_genus_zero_and_outward():
     # Claws: spikes of needle triangles at the first limbs' tips.
     from sphere_nlp.geometry import corner_angles
     assert np.degrees(corner_angles(V, F).min()) < 15
+
+
+def test_a_conformal_start_whose_limb_tips_collapse_stays_finite_and_quiet(capfd):
+    """The plane of FLASH's second step has tip triangles of zero area here (mu = 0/0 in the
+    Beltrami form, and SuperLU then printed BLAS complaints): no RuntimeWarning, nothing on the
+    terminal, a finite map and a certified start."""
+    from sphere_nlp.conformal import conformal_map
+    from sphere_nlp.starts import starting_positions
+    V, F = limbed_body(**COLLAPSING_LIMBS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        S = conformal_map(V, F)
+        start, kind = starting_positions(build_connectivity(F, len(V)), V)
+    assert np.isfinite(S).all() and np.allclose(np.linalg.norm(S, axis=1), 1)
+    assert certify(start, F).valid and kind.startswith("conformal")
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+
+
+def test_every_sparse_solve_refuses_a_non_finite_system():
+    import scipy.sparse as sp
+    from sphere_nlp import sparse_lu
+    from sphere_nlp.conformal import _dirichlet_solve, cotan_laplacian
+    V, F = ellipsoid(1)
+    K = cotan_laplacian(V, F).tolil()
+    K[3, 4] = K[4, 3] = np.nan
+    with pytest.raises(sparse_lu.NonFiniteSystem):
+        _dirichlet_solve(K.tocsr(), np.zeros((len(V), 2)), [0, 1, 2])
+    lu = sparse_lu.factorize(sp.identity(3, format="csc"))
+    with pytest.raises(sparse_lu.NonFiniteSystem):
+        lu.solve(np.array([1.0, np.inf, 0.0]))
 
 
 def _nan_from_the_third_hessian(name, evaluator, x, lam_f, lam_g, values):
