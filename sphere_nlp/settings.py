@@ -217,12 +217,15 @@ class SolverSettings:
     start_gauge : {"excess", "area"}
         Mobius normalisation of the angle modes' start (:func:`sphere_nlp.starts.starting_positions`);
         the area modes keep "area" (their continuation sets the scale).
-    area_mode_budget_per_vertex, area_mode_min_budget : float
-        Area modes: the run's default time budget in seconds, ``max(area_mode_min_budget,
-        area_mode_budget_per_vertex x n)`` for n vertices, shared by the authalic stage and the
-        NLP's polish (:mod:`sphere_nlp.polish`); ``max_time`` overrides it.
+    authalic_steps, polish_iterations : int
+        Area modes: the run's default budget (:mod:`sphere_nlp.polish`), counted in work so that
+        the same input gives the same map on any machine at any load: at most ``authalic_steps``
+        steps of the authalic descent, then at most ``polish_iterations`` IPOPT iterations of the
+        NLP's polish in each of its runs (its iterate is then projected onto the constraints).
+        ``max_time`` replaces it by a wall-clock limit.
     authalic_share : float
-        The fraction of the run's budget the authalic stage may take; the polish has the rest.
+        With ``max_time``: the fraction of the time left that the authalic stage may take; the
+        polish has the rest.
     authalic_stall : float
         The authalic stage also stops when its energy fell by less than this fraction over its
         last 50 steps.
@@ -288,8 +291,8 @@ class SolverSettings:
     projection_iterations: int = 50
     obtuse_angle: float = np.pi / 2
     start_gauge: str = "excess"
-    area_mode_budget_per_vertex: float = 1.3e-3
-    area_mode_min_budget: float = 5.0
+    authalic_steps: int = 400
+    polish_iterations: int = 30
     authalic_share: float = 0.75
     authalic_stall: float = 1e-3
     polish_slack: float = 1e-3

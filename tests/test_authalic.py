@@ -3,11 +3,12 @@
 import math
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
 
-from meshgen import ellipsoid, random_genus0_mesh, tentacle_creature
+from meshgen import COLLAPSING_LIMBS, ellipsoid, limbed_body, random_genus0_mesh, tentacle_creature
 from sphere_nlp import authalic, parameterize, polish
 from sphere_nlp.certify import certify
 from sphere_nlp.connectivity import build_connectivity
@@ -100,7 +101,7 @@ def test_no_worse_band_keeps_each_triangle_no_further_from_its_target():
 def test_route_answer_is_never_worse_than_the_authalic_map():
     V, F = ellipsoid(3)
     C, _, targets = _problem(V, F)
-    route = polish.authalic_route(C, V, targets, budget=60)
+    route = polish.authalic_route(C, V, targets, budget=polish.default_budget())
     record = route.record
     assert certify(route.positions, F).valid
     assert record["mean_abs_log_area"] <= record["authalic"]["mean_abs_log_area"]
@@ -125,16 +126,51 @@ def test_route_keeps_the_authalic_map_when_the_polish_would_raise_the_area_error
     assert not route.solution.converged and route.solution.success
 
 
-def test_default_budget_grows_with_the_mesh_and_has_a_floor():
-    settings = SolverSettings()
-    assert polish.default_budget(100) == settings.area_mode_min_budget
-    assert polish.default_budget(100_000) == pytest.approx(100_000 * settings.area_mode_budget_per_vertex)
+def test_default_budget_is_counted_in_steps_and_iterations():
+    settings = SolverSettings(authalic_steps=7, polish_iterations=3)
+    assert polish.default_budget(settings) == {"descent_steps": 7, "polish_iterations": 3}
+    V, F = ellipsoid(3)
+    C, _, targets = _problem(V, F)
+    route = polish.authalic_route(C, V, targets, budget=polish.default_budget(settings), settings=settings)
+    assert route.record["authalic"]["descent_steps"] <= 7
+    assert all(stage["iterations"] <= 3 for stage in route.solution.stages if stage["name"] != "projection")
+    assert certify(route.positions, F).valid
+
+
+def test_area_mode_map_is_the_same_beside_a_busy_process():
+    """The default budget counts work, not seconds: a CPU hog beside the run changes nothing."""
+    V, F = ellipsoid(3)
+    alone = parameterize((V, F), "original-areas")
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        busy = parameterize((V, F), "original-areas")
+    finally:
+        hog.kill()
+        hog.wait()
+    assert alone.success and busy.success
+    assert np.array_equal(alone.vertices, busy.vertices)
+    assert alone.area_route["answer"] == busy.area_route["answer"]
+
+
+def test_authalic_stage_on_collapsed_triangles_is_quiet_and_certified(capfd):
+    """A start whose thin limbs have collapsed past double precision (zero-area image triangles for
+    SEM's cotangents): no RuntimeWarning, no native library's text, and a certified map back."""
+    V, F = limbed_body(**COLLAPSING_LIMBS)
+    C, start, targets = _problem(V, F)
+    assert (signed_solid_angles(start, F) < 1e-25).any()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        stage = authalic.authalic_map(V, F, start, targets.excess, max_steps=50)
+    assert certify(stage.positions, F).valid
+    assert stage.mean_abs_log_area <= stage.start_mean_abs_log_area
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
 
 
 def test_area_modes_default_to_the_route_with_its_budget():
     result = parameterize(str(MODELS / "cylinder.off"), "equal-areas")
     assert result.success and result.start == "authalic"
-    assert result.area_route["budget"] == polish.default_budget(len(result.vertices))
+    assert result.area_route["budget"] == polish.default_budget()
     # equal-areas: the answer's areas are at least as even as the authalic map's.
     assert result.area_route["mean_abs_log_area"] <= result.area_route["authalic"]["mean_abs_log_area"]
 
