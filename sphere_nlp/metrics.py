@@ -331,9 +331,10 @@ def shrinkage_summary(mesh_vertices, sphere_vertices, faces, target):
     ----------
     mesh_vertices, sphere_vertices : (n, 3) arrays
     faces : (t, 3) int array
-    target : str
+    target : str or None
         The run's mode: the line is for the angle modes, whose maps are free to shrink regions
-        (an area mode keeps each triangle's share).
+        (an area mode keeps each triangle's share); None for a sphere of unknown mode, judged by
+        its numbers alone.
 
     Returns
     -------
@@ -358,7 +359,7 @@ def shrinkage_summary(mesh_vertices, sphere_vertices, faces, target):
     small = finite & (log_ratio < np.log(SHRUNK_SHARE))
     share = normalised_areas_3d(mesh_vertices, faces) / (4 * np.pi)
     fraction = float(share[small].sum())
-    shrunk = bool(target.endswith("-angles") and (mean_abs > SHRUNK_MEAN_ABS_LOG_AREA
+    shrunk = bool((target is None or target.endswith("-angles")) and (mean_abs > SHRUNK_MEAN_ABS_LOG_AREA
                                                   or fraction >= SHRUNK_SURFACE_FRACTION))
     note = None
     if shrunk:
