@@ -312,3 +312,44 @@ def test_morph_fits_b_onto_a_unless_told_not_to(tmp_path, capsys):
     last = load_mesh(tmp_path / "kept" / "frame_002.obj")[0]
     assert np.abs(last - (2.5 * X @ Q.T + [1, 2, 3])).max() < 1e-6
     assert "B is 2.5 times A's size" in capsys.readouterr().err
+
+
+def pinched_fan(level=3, vertex=100, factor=3e-4):
+    """icosphere(level) and a certified sphere of it whose one vertex's fan is shrunk ``factor``
+    times across (1e-7 of its area): a small part of the surface collapsed, the rest as it was."""
+    S, F = icosphere(level)
+    ring = np.unique(F[(F == vertex).any(axis=1)])
+    T = S.copy()
+    T[ring] = S[vertex] + factor * (S[ring] - S[vertex])
+    T /= np.linalg.norm(T, axis=1, keepdims=True)
+    assert certify(T, F).valid
+    return S, T, F
+
+
+def test_the_shrink_line_says_what_triggered_it_in_numbers_that_agree():
+    from sphere_nlp.metrics import SHRUNK_SHARE, area_log_ratio, normalised_areas_3d, shrinkage_summary
+
+    def measured(X, S, F):
+        log_ratio = area_log_ratio(X, S, F)
+        small = log_ratio < np.log(SHRUNK_SHARE)
+        return float(np.abs(log_ratio).mean()), float(normalised_areas_3d(X, F)[small].sum() / (4 * np.pi)), \
+            int(small.sum())
+
+    # Shrunk on average, no triangle below 1e-6 of its share (koala's case): the line speaks of
+    # the average alone, never of "0% of its area".
+    S, F = icosphere(3)
+    T, _ = squeezed_sphere(3)
+    mean, fraction, count = measured(S, T, F)
+    s = shrinkage_summary(S, T, F, "original-angles")
+    assert fraction == 0 and mean > 1 and s["triggers"] == ["mean"]
+    assert "%.2f" % mean in s["note"] and "factor %.3g" % np.exp(mean) in s["note"]
+    assert "of the surface lies" not in s["note"] and "0%" not in s["note"]
+    # A small part collapsed, the average barely moved: the line names the part's share and count.
+    X, T, F = pinched_fan()
+    mean, fraction, count = measured(X, T, F)
+    s = shrinkage_summary(X, T, F, "equal-angles")
+    assert mean < 1 and fraction >= 1e-3 and s["triggers"] == ["surface"]
+    assert "%.3g%% of the surface" % (100 * fraction) in s["note"] and "(%d triangles" % count in s["note"]
+    assert "mean |log area ratio|" not in s["note"]
+    # An area mode's map is not judged (it keeps each triangle's share by its targets).
+    assert shrinkage_summary(X, T, F, "original-areas")["note"] is None
