@@ -35,9 +35,7 @@ EXAMPLES = """examples:
 
 
 def build_parser():
-    from .nlp import FORMULATIONS
-    from .solve import ON_LIMIT
-    from .targets import CORNER_WEIGHTINGS, MODES
+    from .names import CORNER_WEIGHTINGS, FORMULATIONS, MODES, ON_LIMIT
 
     parser = UsageParser(
         prog=PROG,

@@ -716,6 +716,30 @@ def test_version_and_one_program_name_in_every_message(tmp_path):
         assert p.returncode == 2 and p.stderr.strip().splitlines()[-1].startswith("sphere-nlp: error: ")
 
 
+@pytest.mark.parametrize("option", ["--help", "--version"])
+def test_help_and_version_import_no_numerical_stack_and_take_under_a_fifth_of_a_second(option):
+    import time
+
+    command = [sys.executable, "-X", "importtime", "-m", "sphere_nlp", option]
+    p = subprocess.run(command, capture_output=True, text=True, env=checkout_env())
+    assert p.returncode == 0 and p.stdout.strip()
+    # -X importtime lists every module imported, one per line: "import time: self | cumulative | name".
+    imported = {line.rsplit("|", 1)[-1].strip() for line in p.stderr.splitlines() if "|" in line}
+    assert "sphere_nlp.cli" in imported
+    heavy = {name for name in imported if name.split(".")[0] in ("casadi", "scipy", "numpy", "trimesh",
+                                                                 "matplotlib")}
+    assert not heavy, sorted(heavy)[:5]
+    if option == "--help":
+        assert all(name in p.stdout for name in sphere_nlp.commands.SUBCOMMANDS)
+    # Wall time, interpreter start included: the best of three, as a loaded machine adds noise.
+    times = []
+    for _ in range(3):
+        start = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "sphere_nlp", option], capture_output=True, env=checkout_env())
+        times.append(time.perf_counter() - start)
+    assert min(times) <= 0.2, times
+
+
 def test_every_docs_picture_is_made_by_the_documented_command():
     import ast
 
