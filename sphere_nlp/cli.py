@@ -44,12 +44,13 @@ def build_parser():
                     "(Sheffer, Gotsman & Dyn 2004), certified before anything is written.\n\n"
                     "commands:\n" + subcommand_lines(),
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("input", help="input mesh (OFF, OBJ, PLY, STL, anything trimesh reads)")
+    parser.add_argument("input", help="input mesh: OFF, OBJ, PLY, STL, FreeSurfer (lh.pial), GIFTI (.gii), "
+                                      "anything trimesh reads; polygons are split into triangles")
     parser.add_argument("--version", action="version", version="sphere-nlp " + __version__)
     out = parser.add_argument_group("output (each written atomically, only for a certified sphere)")
-    out.add_argument("-o", "--output", metavar="OUT", help="sphere mesh, .off/.obj/.ply; .obj carries longitude/latitude "
-                                            "texture coordinates (default: <input name without its last "
-                                            "extension>.sphere.off here)")
+    out.add_argument("-o", "--output", metavar="OUT", help="sphere mesh, .off/.obj/.ply/.glb/.gltf; .obj carries "
+                                            "longitude/latitude texture coordinates (default: <input name "
+                                            "without its last extension>.sphere.off here)")
     out.add_argument("--png", metavar="OUT.png",
                      help="picture: mesh and sphere coloured by distortion, mesh checkerboarded")
     out.add_argument("--png-measure", choices=("area", "angle"),
@@ -68,6 +69,9 @@ def build_parser():
     out.add_argument("--report", metavar="R.json", help="run statistics as JSON (also on failure)")
     out.add_argument("--save-solution", metavar="S.npz",
                      help="vertices, faces, angles, excess and targets as .npz")
+    out.add_argument("--save-distortion", metavar="D.npz",
+                     help="distortion per face and per vertex as .npz: log area ratio, angle distortion, "
+                          "quasi-conformal ratio (to colour the mesh or find where the map pays)")
     method = parser.add_argument_group("method")
     method.add_argument("--target", default="original-angles", choices=MODES, metavar="MODE",
                         help="what the map aims for: %s (default: original-angles)" % ", ".join(MODES))
@@ -374,13 +378,15 @@ def run(args, progress):
     _check_suffix(args.png, ".png", "a picture")
     _check_suffix(args.textured_input, ".obj", "a textured mesh")
     _check_suffix(args.texture, ".png", "a texture")
+    _check_suffix(args.save_distortion, ".npz", "a distortion file")
     is_obj = output.suffix.lower() == ".obj"
     if args.texture and not is_obj and not args.textured_input:
         raise errors.UsageError("--texture needs an OBJ output (-o X.obj or --textured-input X.obj)")
     outputs = [("-o" if args.output else "the default output", output)]
     outputs += [(option, Path(path)) for option, path in
                 (("--png", args.png), ("--textured-input", args.textured_input),
-                 ("--save-solution", args.save_solution), ("--report", args.report)) if path]
+                 ("--save-solution", args.save_solution), ("--save-distortion", args.save_distortion),
+                 ("--report", args.report)) if path]
     # The texture image goes beside each OBJ written (one file when both OBJs share a folder).
     textures = {_texture_beside(obj, args.texture).resolve() for obj in
                 ([output] if is_obj else []) + ([Path(args.textured_input)] if args.textured_input else [])
@@ -433,6 +439,8 @@ def run(args, progress):
                                         texture=_texture_beside(args.textured_input, args.texture))
         if args.save_solution:
             result.save_solution(args.save_solution)
+        if args.save_distortion:
+            result.save_distortion(args.save_distortion)
         if args.png:
             progress.stage("write (picture)")
             result.write_png(args.png, measure=args.png_measure, view=args.view, up=args.up)

@@ -178,6 +178,34 @@ def per_vertex_mean(faces, face_values, n_vertices):
         return total / count
 
 
+def distortion_fields(mesh_vertices, sphere_vertices, faces):
+    """A map's distortion where it happens: per face and per vertex arrays, to colour or analyse.
+
+    Returns a dict of arrays: ``face_log_area_ratio`` (:func:`area_log_ratio`, (t,)),
+    ``face_angle_distortion_deg`` (mean of :func:`angle_distortion` over the corners, (t,)),
+    ``corner_angle_distortion_deg`` ((t, 3)), ``face_quasi_conformal`` (:func:`quasi_conformal_ratio`,
+    (t,)), and ``vertex_log_area_ratio``, ``vertex_angle_distortion_deg`` (:func:`per_vertex_mean`
+    of the face values, (n,)). Their means are :func:`distortion_summary`'s.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> V, F = octahedron()
+    >>> d = distortion_fields(V, V, F)
+    >>> d["vertex_log_area_ratio"].shape, float(np.abs(d["face_angle_distortion_deg"]).max()) < 1e-12
+    ((6,), True)
+    """
+    mesh_vertices, faces = _arrays(mesh_vertices, faces)
+    corners = np.degrees(angle_distortion(mesh_vertices, sphere_vertices, faces))
+    log_area = area_log_ratio(mesh_vertices, sphere_vertices, faces)
+    n = len(sphere_vertices)
+    return {"face_log_area_ratio": log_area, "face_angle_distortion_deg": corners.mean(axis=1),
+            "corner_angle_distortion_deg": corners,
+            "face_quasi_conformal": quasi_conformal_ratio(mesh_vertices, sphere_vertices, faces),
+            "vertex_log_area_ratio": per_vertex_mean(faces, log_area, n),
+            "vertex_angle_distortion_deg": per_vertex_mean(faces, corners.mean(axis=1), n)}
+
+
 def _json_float(value):
     """A float for JSON: non-finite values become None (JSON has no inf or nan)."""
     value = float(value)
