@@ -26,6 +26,10 @@ from . import __version__, errors, interrupts
 from .commands import (PROG, SUBCOMMANDS, SafeStream, UsageParser, check_output_paths as _check_paths,
                        subcommand_lines, subcommand_main, unknown_command)
 
+# SolverSettings' area_floor, repeated so that --help need not import numpy (tests/test_ux.py
+# checks that the two agree).
+DEFAULT_AREA_FLOOR = 1e-12
+
 # Three runnable examples (tests/test_ux.py runs each of them).
 EXAMPLES = """examples:
   sphere-nlp models/cylinder.off
@@ -83,11 +87,13 @@ def build_parser():
                         help="angle term: relative errors, weights 1/beta^2 (default in the angle modes), "
                              "or uniform (the paper's (9) verbatim; default in the area modes)")
     method.add_argument("--corner-floor", type=float, metavar="F",
-                        help="keep every spherical corner >= F x its target angle (default 0.1, 0 in the "
-                             "area modes), and in the angle modes every corner whose target is below 10 "
-                             "degrees >= half of it (0: no corner floor at all)")
+                        help="a floor is a lower bound the map keeps, so that no triangle collapses: every "
+                             "spherical corner >= F x its target angle (default 0.1; 0 in the area modes), and "
+                             "in the angle modes every corner whose target is below 10 degrees >= half of it "
+                             "(0: no corner floor at all)")
     method.add_argument("--area-floor", type=float, metavar="F",
-                        help="keep every spherical triangle >= F x the mean area 4 pi / t (0: off)")
+                        help="every spherical triangle >= F x the mean area 4 pi / t (default %g; 0: off)"
+                             % DEFAULT_AREA_FLOOR)
     method.add_argument("--start", metavar="SPHERE",
                         help="start from an earlier sphere of this mesh (one sphere-nlp wrote for it, or for "
                              "a mesh with the same triangles); near the targets the area modes then skip "
@@ -210,28 +216,34 @@ def summary_line(output, result):
         from .polish import describe
         line += "; " + describe(result.area_route)
     elif not result.converged:
-        line += ("; NOT OPTIMAL: the solve stopped at its limit (IPOPT %s after %d iterations, objective "
-                 "%.6g) and its last iterate was projected onto the constraints"
-                 % (result.status, result.iterations, result.objective))
+        line += ("; NOT OPTIMAL: the solve reached its limit after %d iterations (IPOPT %s), and the map it "
+                 "had reached was made valid and certified, not finished" % (result.iterations, result.status))
     return line
 
 
-def floor_note(result, corner_floor_given):
-    """A line on the floors after a certified run, or None: how many corners and triangles ended
-    on their floors, or, in an area mode run without a corner floor, how many corners collapsed
-    below 0.1 x their target and how to keep them."""
+def floor_note(result, corner_floor, area_floor=None):
+    """A line on the floors after a certified run, or None: how many corners and triangles the map
+    would have made smaller than the floors allow (``corner_floor``, ``area_floor``: the values
+    given, None for the defaults), or, in an area mode run without a corner floor, how many corners
+    collapsed below 0.1 x their target and how to keep them."""
     area_mode = result.target.endswith("-areas")
-    collapsed = result.usability()["corners_below_fraction"] if area_mode and not corner_floor_given else 0
+    collapsed = result.usability()["corners_below_fraction"] if area_mode and not corner_floor else 0
     if collapsed:
         return ("%d of %d corners ended below 0.1 x their target angle: reaching the areas shears "
                 "their triangles; --corner-floor 0.1 keeps them, at a cost in area error (docs/tuning.md)"
                 % (collapsed, result.angles.size))
     parts = []
-    if result.floor_corners and (corner_floor_given or not area_mode):
-        parts.append("%d corners (--corner-floor)" % result.floor_corners)
+    if result.floor_corners and (corner_floor or not area_mode):
+        parts.append("%d corners at their smallest allowed angle (%s: --corner-floor)"
+                     % (result.floor_corners, "%g x their target" % corner_floor if corner_floor else
+                        "0.1 x their target, half of it below 10 degrees"))
     if result.floor_triangles:
-        parts.append("%d triangles (--area-floor)" % result.floor_triangles)
-    return " and ".join(parts) + " ended on their floors" if parts else None
+        parts.append("%d triangles at their smallest allowed area (%g x the mean: --area-floor)"
+                     % (result.floor_triangles, area_floor if area_floor is not None else DEFAULT_AREA_FLOOR))
+    if not parts:
+        return None
+    return ("the map held " + " and ".join(parts) + ", where it would have made them smaller (a floor is a "
+            "lower bound that keeps triangles usable)")
 
 
 def _view(text):
@@ -449,7 +461,7 @@ def run(args, progress):
         _write_hook("staged")
     # Committed (interrupts.committed): from here on a signal no longer undoes the run.
     progress.say(summary_line(output, result))
-    note = floor_note(result, bool(args.corner_floor))
+    note = floor_note(result, args.corner_floor, args.area_floor)
     if note:
         progress.say(note)
     shrunk = result.shrinkage()["note"]

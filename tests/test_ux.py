@@ -453,7 +453,7 @@ def test_summary_line_states_size_mode_time_certificate_and_distortion(tmp_path,
     match = re.fullmatch(r"wrote (.+): (\d+) vertices, original-areas, ([\d.]+) s, certified \(degree 1, "
                          r"0 flipped\), mean angle distortion ([\d.]+)°, mean \|log area ratio\| ([\d.]+)"
                          # the area modes then say which map is the answer (sphere_nlp.polish.describe)
-                         r"; (?:polished to .*|the authalic map, objective \(9\) .*)", last)
+                         r"; the (?:area-keeping map refined .*|first area-keeping map, not refined: .*)", last)
     assert match, last
     assert match[1] == str(out) and int(match[2]) == 86 and 0 < float(match[3]) < 60
     # The numbers are those of the written sphere against the input.
@@ -588,6 +588,26 @@ def test_help_is_grouped_and_ends_with_three_runnable_examples(tmp_path):
         assert p.returncode == 0, (command, p.stderr)
     written = {p.name for p in work.iterdir()}
     assert written >= {"cylinder.sphere.off", "cylinder.obj", "cylinder.png", "painted.obj", "run.json"}
+
+
+def test_help_says_what_a_floor_is_and_gives_the_defaults_the_settings_have():
+    from types import SimpleNamespace
+
+    from sphere_nlp.cli import DEFAULT_AREA_FLOOR, build_parser, floor_note
+    from sphere_nlp.settings import DEFAULT_SETTINGS as D
+
+    text = " ".join(build_parser().format_help().split())
+    assert DEFAULT_AREA_FLOOR == D.area_floor and "(default %g; 0: off)" % D.area_floor in text
+    assert "a floor is a lower bound" in text and "(default %g; 0 in the area modes)" % D.corner_floor in text
+    assert D.area_mode_corner_floor == 0 and D.small_corner_floor == 0.5 and np.degrees(D.small_corner_angle) == 10
+    # The run's line on the floors names the values that held, in the map's terms.
+    run = SimpleNamespace(target="original-angles", floor_corners=3, floor_triangles=33)
+    line = floor_note(run, None, None)
+    assert line == ("the map held 3 corners at their smallest allowed angle (0.1 x their target, half of it "
+                    "below 10 degrees: --corner-floor) and 33 triangles at their smallest allowed area (1e-12 x "
+                    "the mean: --area-floor), where it would have made them smaller (a floor is a lower bound "
+                    "that keeps triangles usable)")
+    assert "0.2 x their target" in floor_note(run, 0.2, 1e-9) and "1e-09 x the mean" in floor_note(run, 0.2, 1e-9)
 
 
 def test_console_script_is_declared():
