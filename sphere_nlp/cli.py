@@ -54,7 +54,8 @@ def build_parser():
     out = parser.add_argument_group("output (each written atomically, only for a certified sphere)")
     out.add_argument("-o", "--output", metavar="OUT", help="sphere mesh, .off/.obj/.ply/.glb/.gltf; .obj carries "
                                             "longitude/latitude texture coordinates (default: <input name "
-                                            "without its last extension>.sphere.off here)")
+                                            "without its last extension>[.MODE unless the default]"
+                                            ".sphere.off here)")
     out.add_argument("--png", metavar="OUT.png",
                      help="picture: mesh and sphere coloured by distortion, mesh checkerboarded")
     out.add_argument("--png-measure", choices=("area", "angle"),
@@ -268,13 +269,16 @@ def _texture_beside(obj_path, texture):
     return Path(obj_path).parent / texture if texture.parent == Path(".") else texture
 
 
-def default_output(input_path):
-    """``<input name without its last extension>.sphere.off``, in the current folder.
+def default_output(input_path, target="original-angles"):
+    """``<input name without its last extension>.sphere.off``, in the current folder; a mode other
+    than the default is named in it (``bunny.original-areas.sphere.off``), so that an area-mode run
+    does not replace the default run's sphere as if it were the same map.
 
     ``knight.v1.off`` gives ``knight.v1.sphere.off`` (not ``knight.sphere.off``, which ``knight.v2.off``
     would overwrite), ``.hidden.off`` gives ``.hidden.sphere.off``.
     """
-    return Path(Path(input_path).stem + ".sphere.off")
+    mode = "" if target == "original-angles" else "." + target
+    return Path(Path(input_path).stem + mode + ".sphere.off")
 
 
 def check_output_paths(input_path, outputs):
@@ -383,7 +387,7 @@ def run(args, progress):
     from .mesh_io import check_mesh_path, load_mesh, output_transaction
 
     input_path = Path(args.input)
-    output = Path(args.output) if args.output else default_output(input_path)
+    output = Path(args.output) if args.output else default_output(input_path, args.target)
     # Every option and output path is checked before the (possibly long) solve.
     check_arguments(args)
     check_mesh_path(output)
