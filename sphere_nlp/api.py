@@ -16,8 +16,8 @@ import numpy as np
 from . import errors, interrupts
 from .certify import Certificate, certify, spherical_angles
 from .repair import prepare_mesh
-from .metrics import distortion_summary, shrinkage_summary, usability_summary
-from .mesh_io import (check_mesh_path, load_mesh, write_image, write_json, write_material, write_mesh,
+from .metrics import distortion_fields, distortion_summary, shrinkage_summary, usability_summary
+from .mesh_io import (GLTF_FORMATS, check_mesh_path, read_mesh, write_image, write_json, write_material, write_mesh,
                       write_npz)
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, status_kind
 from .settings import DEFAULT_SETTINGS, SolverSettings
@@ -176,7 +176,10 @@ class SphericalParameterization:
         return spherical_uv(self.vertices, self.faces)
 
     def write(self, path, texture=None):
-        """Write the sphere mesh (OFF, OBJ or PLY by extension).
+        """Write the sphere mesh (OFF, OBJ, PLY, or glTF's .glb / .gltf, by extension).
+
+        glTF holds 32-bit positions: the sphere is written only if, rounded so and projected back
+        onto the unit sphere, it still passes the certificate (CertificateError otherwise).
 
         An OBJ also carries texture coordinates (:meth:`texture_coordinates`, ``f v/vt`` faces), so
         an equirectangular image (a world map, an environment map) wraps onto it as onto a globe.
@@ -194,10 +197,24 @@ class SphericalParameterization:
         """
         self._refuse_unless_certified()
         check_mesh_path(path)
+        if Path(path).suffix.lower() in GLTF_FORMATS:
+            self._certify_as_float32(path)
         is_obj = Path(path).suffix.lower() == ".obj"
         uv = self.texture_coordinates() if is_obj else None
         material = self._write_texture(path, texture) if texture is not None else None
         write_mesh(path, self.vertices, self.faces, uv, material=material)
+
+    def _certify_as_float32(self, path):
+        """Raise CertificateError unless the sphere rounded to 32-bit floats (glTF's positions),
+        projected back onto the unit sphere as a reader would, still passes the certificate: no
+        flipped or degenerate triangle, degree 1. Rounding moves a vertex by about 1e-7, which can
+        flip a triangle smaller than that."""
+        rounded = np.asarray(self.vertices, np.float32).astype(float)
+        rounded /= np.linalg.norm(rounded, axis=1, keepdims=True)
+        cert = certify(rounded, self.faces)
+        if not cert.valid:
+            raise errors.CertificateError("refusing to write %s: glTF's 32-bit positions break the sphere's "
+                                          "certificate (%s); write .off, .obj or .ply" % (path, cert.reason), self)
 
     def write_textured_input(self, path, texture=None):
         """Write the *input* mesh as OBJ with the sphere's texture coordinates.
@@ -316,6 +333,14 @@ class SphericalParameterization:
                   target_angles=self.target_angles, target_excess=self.target_excess,
                   vertex_map=self.vertex_map)
 
+    def save_distortion(self, path):
+        """Write the map's distortion per face and per vertex to an .npz archive: the arrays of
+        :func:`sphere_nlp.metrics.distortion_fields` (measured as :meth:`distortion` measures),
+        with ``faces`` and ``vertex_map`` (per-vertex rows follow the sphere's vertices)."""
+        self._refuse_unless_certified()
+        fields = distortion_fields(_unit_size(self.input_vertices), self.vertices, self.faces)
+        write_npz(path, faces=self.faces, vertex_map=self.vertex_map, **fields)
+
     def report(self):
         """A JSON-ready dict of the run's statistics."""
         return {
@@ -394,15 +419,16 @@ def _unit_size(vertices):
 
 
 def _as_arrays(mesh):
-    """(vertices, faces) from a path, a trimesh.Trimesh, or a (V, F) pair.
+    """(vertices, faces, notes) from a path, a trimesh.Trimesh, or a (V, F) pair; ``notes`` says
+    what reading a file changed (:func:`~sphere_nlp.mesh_io.read_mesh`).
 
     Arrays are passed on as given: :func:`~sphere_nlp.connectivity.check_arrays` converts them and reports
     malformed ones (ragged face lists, wrong shapes) as input errors.
     """
     if isinstance(mesh, (str, Path)):
-        return load_mesh(mesh)
+        return read_mesh(mesh)
     if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
-        return mesh.vertices, mesh.faces
+        return mesh.vertices, mesh.faces, []
     try:
         vertices, faces = mesh
     except (TypeError, ValueError):
@@ -423,7 +449,7 @@ def _as_arrays(mesh):
                                         "1.8e308)") from None
             except (TypeError, ValueError):
                 pass
-    return vertices, faces
+    return vertices, faces, []
 
 
 def check_run_options(target="original-angles", formulation=DEFAULT_FORMULATION, on_limit="fail", max_iter=None,
@@ -638,7 +664,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
 
     if on_stage is not None:
         on_stage("load")
-    vertices, faces = _as_arrays(mesh)
+    vertices, faces, read_notes = _as_arrays(mesh)
     lap("load", "build")
     prepared = prepare_mesh(vertices, faces)
     faces, connectivity = prepared.faces, prepared.connectivity
@@ -726,7 +752,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         max_constraint_violation=solution.max_constraint_violation, max_angle_error=angle_error,
         certificate=certificate, vertex_map=prepared.vertex_map, solved=solution.success,
         converged=solution.converged,
-        stages=solution.stages, timings=timings, repairs=prepared.repairs,
+        stages=solution.stages, timings=timings, repairs=read_notes + prepared.repairs,
         unfold_info=unfold_info, peak_rss_mb=peak_rss_mb(), start=solution.start,
         corner_weighting=targets.corner_weighting, floor_corners=solution.floor_corners,
         floor_triangles=solution.floor_triangles, recovery=recovery, area_route=area_route)

@@ -26,6 +26,10 @@ from . import __version__, errors, interrupts
 from .commands import (PROG, SUBCOMMANDS, SafeStream, UsageParser, check_output_paths as _check_paths,
                        subcommand_lines, subcommand_main, unknown_command)
 
+# SolverSettings' area_floor, repeated so that --help need not import numpy (tests/test_ux.py
+# checks that the two agree).
+DEFAULT_AREA_FLOOR = 1e-12
+
 # Three runnable examples (tests/test_ux.py runs each of them).
 EXAMPLES = """examples:
   sphere-nlp models/cylinder.off
@@ -35,9 +39,7 @@ EXAMPLES = """examples:
 
 
 def build_parser():
-    from .nlp import FORMULATIONS
-    from .solve import ON_LIMIT
-    from .targets import CORNER_WEIGHTINGS, MODES
+    from .names import CORNER_WEIGHTINGS, FORMULATIONS, MODES, ON_LIMIT
 
     parser = UsageParser(
         prog=PROG,
@@ -46,12 +48,14 @@ def build_parser():
                     "(Sheffer, Gotsman & Dyn 2004), certified before anything is written.\n\n"
                     "commands:\n" + subcommand_lines(),
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("input", help="input mesh (OFF, OBJ, PLY, STL, anything trimesh reads)")
+    parser.add_argument("input", help="input mesh: OFF, OBJ, PLY, STL, FreeSurfer (lh.pial), GIFTI (.gii), "
+                                      "anything trimesh reads; polygons are split into triangles")
     parser.add_argument("--version", action="version", version="sphere-nlp " + __version__)
     out = parser.add_argument_group("output (each written atomically, only for a certified sphere)")
-    out.add_argument("-o", "--output", metavar="OUT", help="sphere mesh, .off/.obj/.ply; .obj carries longitude/latitude "
-                                            "texture coordinates (default: <input name without its last "
-                                            "extension>.sphere.off here)")
+    out.add_argument("-o", "--output", metavar="OUT", help="sphere mesh, .off/.obj/.ply/.glb/.gltf; .obj carries "
+                                            "longitude/latitude texture coordinates (default: <input name "
+                                            "without its last extension>[.MODE unless the default]"
+                                            ".sphere.off here)")
     out.add_argument("--png", metavar="OUT.png",
                      help="picture: mesh and sphere coloured by distortion, mesh checkerboarded")
     out.add_argument("--png-measure", choices=("area", "angle"),
@@ -70,6 +74,9 @@ def build_parser():
     out.add_argument("--report", metavar="R.json", help="run statistics as JSON (also on failure)")
     out.add_argument("--save-solution", metavar="S.npz",
                      help="vertices, faces, angles, excess and targets as .npz")
+    out.add_argument("--save-distortion", metavar="D.npz",
+                     help="distortion per face and per vertex as .npz: log area ratio, angle distortion, "
+                          "quasi-conformal ratio (to colour the mesh or find where the map pays)")
     method = parser.add_argument_group("method")
     method.add_argument("--target", default="original-angles", choices=MODES, metavar="MODE",
                         help="what the map aims for: %s (default: original-angles)" % ", ".join(MODES))
@@ -81,11 +88,13 @@ def build_parser():
                         help="angle term: relative errors, weights 1/beta^2 (default in the angle modes), "
                              "or uniform (the paper's (9) verbatim; default in the area modes)")
     method.add_argument("--corner-floor", type=float, metavar="F",
-                        help="keep every spherical corner >= F x its target angle (default 0.1, 0 in the "
-                             "area modes), and in the angle modes every corner whose target is below 10 "
-                             "degrees >= half of it (0: no corner floor at all)")
+                        help="a floor is a lower bound the map keeps, so that no triangle collapses: every "
+                             "spherical corner >= F x its target angle (default 0.1; 0 in the area modes), and "
+                             "in the angle modes every corner whose target is below 10 degrees >= half of it "
+                             "(0: no corner floor at all)")
     method.add_argument("--area-floor", type=float, metavar="F",
-                        help="keep every spherical triangle >= F x the mean area 4 pi / t (0: off)")
+                        help="every spherical triangle >= F x the mean area 4 pi / t (default %g; 0: off)"
+                             % DEFAULT_AREA_FLOOR)
     method.add_argument("--start", metavar="SPHERE",
                         help="start from an earlier sphere of this mesh (one sphere-nlp wrote for it, or for "
                              "a mesh with the same triangles); near the targets the area modes then skip "
@@ -208,28 +217,34 @@ def summary_line(output, result):
         from .polish import describe
         line += "; " + describe(result.area_route)
     elif not result.converged:
-        line += ("; NOT OPTIMAL: the solve stopped at its limit (IPOPT %s after %d iterations, objective "
-                 "%.6g) and its last iterate was projected onto the constraints"
-                 % (result.status, result.iterations, result.objective))
+        line += ("; NOT OPTIMAL: the solve reached its limit after %d iterations (IPOPT %s), and the map it "
+                 "had reached was made valid and certified, not finished" % (result.iterations, result.status))
     return line
 
 
-def floor_note(result, corner_floor_given):
-    """A line on the floors after a certified run, or None: how many corners and triangles ended
-    on their floors, or, in an area mode run without a corner floor, how many corners collapsed
-    below 0.1 x their target and how to keep them."""
+def floor_note(result, corner_floor, area_floor=None):
+    """A line on the floors after a certified run, or None: how many corners and triangles the map
+    would have made smaller than the floors allow (``corner_floor``, ``area_floor``: the values
+    given, None for the defaults), or, in an area mode run without a corner floor, how many corners
+    collapsed below 0.1 x their target and how to keep them."""
     area_mode = result.target.endswith("-areas")
-    collapsed = result.usability()["corners_below_fraction"] if area_mode and not corner_floor_given else 0
+    collapsed = result.usability()["corners_below_fraction"] if area_mode and not corner_floor else 0
     if collapsed:
         return ("%d of %d corners ended below 0.1 x their target angle: reaching the areas shears "
                 "their triangles; --corner-floor 0.1 keeps them, at a cost in area error (docs/tuning.md)"
                 % (collapsed, result.angles.size))
     parts = []
-    if result.floor_corners and (corner_floor_given or not area_mode):
-        parts.append("%d corners (--corner-floor)" % result.floor_corners)
+    if result.floor_corners and (corner_floor or not area_mode):
+        parts.append("%d corners at their smallest allowed angle (%s: --corner-floor)"
+                     % (result.floor_corners, "%g x their target" % corner_floor if corner_floor else
+                        "0.1 x their target, half of it below 10 degrees"))
     if result.floor_triangles:
-        parts.append("%d triangles (--area-floor)" % result.floor_triangles)
-    return " and ".join(parts) + " ended on their floors" if parts else None
+        parts.append("%d triangles at their smallest allowed area (%g x the mean: --area-floor)"
+                     % (result.floor_triangles, area_floor if area_floor is not None else DEFAULT_AREA_FLOOR))
+    if not parts:
+        return None
+    return ("the map held " + " and ".join(parts) + ", where it would have made them smaller (a floor is a "
+            "lower bound that keeps triangles usable)")
 
 
 def _view(text):
@@ -254,13 +269,16 @@ def _texture_beside(obj_path, texture):
     return Path(obj_path).parent / texture if texture.parent == Path(".") else texture
 
 
-def default_output(input_path):
-    """``<input name without its last extension>.sphere.off``, in the current folder.
+def default_output(input_path, target="original-angles"):
+    """``<input name without its last extension>.sphere.off``, in the current folder; a mode other
+    than the default is named in it (``bunny.original-areas.sphere.off``), so that an area-mode run
+    does not replace the default run's sphere as if it were the same map.
 
     ``knight.v1.off`` gives ``knight.v1.sphere.off`` (not ``knight.sphere.off``, which ``knight.v2.off``
     would overwrite), ``.hidden.off`` gives ``.hidden.sphere.off``.
     """
-    return Path(Path(input_path).stem + ".sphere.off")
+    mode = "" if target == "original-angles" else "." + target
+    return Path(Path(input_path).stem + mode + ".sphere.off")
 
 
 def check_output_paths(input_path, outputs):
@@ -369,20 +387,22 @@ def run(args, progress):
     from .mesh_io import check_mesh_path, load_mesh, output_transaction
 
     input_path = Path(args.input)
-    output = Path(args.output) if args.output else default_output(input_path)
+    output = Path(args.output) if args.output else default_output(input_path, args.target)
     # Every option and output path is checked before the (possibly long) solve.
     check_arguments(args)
     check_mesh_path(output)
     _check_suffix(args.png, ".png", "a picture")
     _check_suffix(args.textured_input, ".obj", "a textured mesh")
     _check_suffix(args.texture, ".png", "a texture")
+    _check_suffix(args.save_distortion, ".npz", "a distortion file")
     is_obj = output.suffix.lower() == ".obj"
     if args.texture and not is_obj and not args.textured_input:
         raise errors.UsageError("--texture needs an OBJ output (-o X.obj or --textured-input X.obj)")
     outputs = [("-o" if args.output else "the default output", output)]
     outputs += [(option, Path(path)) for option, path in
                 (("--png", args.png), ("--textured-input", args.textured_input),
-                 ("--save-solution", args.save_solution), ("--report", args.report)) if path]
+                 ("--save-solution", args.save_solution), ("--save-distortion", args.save_distortion),
+                 ("--report", args.report)) if path]
     # The texture image goes beside each OBJ written (one file when both OBJs share a folder).
     textures = {_texture_beside(obj, args.texture).resolve() for obj in
                 ([output] if is_obj else []) + ([Path(args.textured_input)] if args.textured_input else [])
@@ -435,6 +455,8 @@ def run(args, progress):
                                         texture=_texture_beside(args.textured_input, args.texture))
         if args.save_solution:
             result.save_solution(args.save_solution)
+        if args.save_distortion:
+            result.save_distortion(args.save_distortion)
         if args.png:
             progress.stage("write (picture)")
             result.write_png(args.png, measure=args.png_measure, view=args.view, up=args.up)
@@ -443,7 +465,7 @@ def run(args, progress):
         _write_hook("staged")
     # Committed (interrupts.committed): from here on a signal no longer undoes the run.
     progress.say(summary_line(output, result))
-    note = floor_note(result, bool(args.corner_floor))
+    note = floor_note(result, args.corner_floor, args.area_floor)
     if note:
         progress.say(note)
     shrunk = result.shrinkage()["note"]

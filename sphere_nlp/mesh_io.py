@@ -17,22 +17,35 @@ import numpy as np
 
 from . import errors
 
-MESH_FORMATS = (".off", ".obj", ".ply")
+MESH_FORMATS = (".off", ".obj", ".ply", ".glb", ".gltf")
+# glTF stores positions as 32-bit floats (through trimesh's exporter); the others as text with 17 digits.
+GLTF_FORMATS = (".glb", ".gltf")
 
 
 def load_mesh(path):
     """Read a triangle mesh file, returning ``(vertices (n, 3) float, faces (t, 3) int)``.
 
-    Vertices and faces are returned exactly as stored (no merging, no reordering). OFF and OBJ files are
-    read by sphere_nlp's own strict readers (:func:`read_off`, :func:`read_obj`); other formats by
-    trimesh. Polygons with more than three corners are rejected rather than triangulated: how a polygon
-    is split changes the target angles, so that choice is left to the user. For PLY the header's
-    counts are checked against what trimesh read, which catches truncated files and polygons.
+    :func:`read_mesh` without its notes (the polygons it triangulated, if any).
+    """
+    vertices, faces, _ = read_mesh(path)
+    return vertices, faces
+
+
+def read_mesh(path):
+    """Read a mesh file: ``(vertices (n, 3) float, faces (t, 3) int, notes)``.
+
+    Vertices and faces are returned exactly as stored (no merging, no reordering). The reader is
+    chosen by the file's first bytes (a FreeSurfer surface, such as ``lh.pial``, whatever its name),
+    else by its extension in :data:`READERS` (OFF and OBJ by sphere_nlp's own strict readers, GIFTI
+    through nibabel); other formats by trimesh. An OFF or OBJ file with faces of more than three
+    corners is read again by trimesh, which splits them into triangles, and ``notes`` says so in
+    one line (the split changes the target angles). For PLY the header's counts are checked
+    against what trimesh read, which catches truncated files.
 
     Raises
     ------
     UnreadableMeshError
-        Missing, empty, truncated or unparsable file, polygons, or no triangles in it.
+        Missing, empty, truncated or unparsable file, or no triangles in it.
     FaceIndexError
         An OBJ face refers to a vertex that does not exist.
     """
@@ -45,21 +58,110 @@ def load_mesh(path):
         if path.stat().st_size == 0:
             raise errors.UnreadableMeshError("cannot read %s: the file is empty" % path)
         suffix = path.suffix.lower()
-        # The first bytes decide whether the file can be this format at all, before a large file is
-        # parsed (a 50 MB file of digits named .off took 15 s and 1.9 GB to reject).
-        _check_header(path, suffix)
-        if suffix == ".off":
-            vertices, faces = read_off(path)
-        elif suffix == ".obj":
-            vertices, faces = read_obj(path)
+        notes = []
+        with open(path, "rb") as handle:
+            magic = handle.read(3)
+        if magic in FREESURFER_MAGICS:          # lh.pial, lh.white, ...: no extension to go by
+            vertices, faces = read_freesurfer(path)
         else:
-            vertices, faces = _load_with_trimesh(path)
+            # The first bytes decide whether the file can be this format at all, before a large file is
+            # parsed (a 50 MB file of digits named .off took 15 s and 1.9 GB to reject).
+            _check_header(path, suffix)
+            try:
+                vertices, faces = READERS.get(suffix, _load_with_trimesh)(path)
+            except PolygonFacesError as exc:
+                vertices, faces = _load_with_trimesh(path, split=True)
+                notes.append("split %s of more than 3 corners into triangles (%d faces became %d "
+                             "triangles; the split sets their target angles)"
+                             % ("%d face(s)" % exc.count if exc.count else "the faces", exc.faces, len(faces)))
     except OSError as exc:                      # unreadable (permissions, I/O error, ...)
         raise errors.UnreadableMeshError("cannot read %s: %s" % (path, exc.strerror or exc)) from None
     if len(faces) == 0 or len(vertices) == 0:
         raise errors.UnreadableMeshError("cannot read %s as a mesh: it contains no triangles "
                                          "(empty or truncated?)" % path)
+    return vertices, faces, notes
+
+
+class PolygonFacesError(errors.UnreadableMeshError):
+    """A strict reader met faces of more than three corners (``count`` of its ``faces``)."""
+
+    def __init__(self, message, count, faces):
+        super().__init__(message)
+        self.count, self.faces = count, faces
+
+
+# FreeSurfer's binary surfaces start with a 3-byte magic number: triangles (0xFFFFFE), and the old
+# quadrangle formats (0xFFFFFF, 0xFFFFFD), which are refused by name.
+FREESURFER_TRIANGLES = b"\xff\xff\xfe"
+FREESURFER_MAGICS = (FREESURFER_TRIANGLES, b"\xff\xff\xff", b"\xff\xff\xfd")
+
+
+def read_freesurfer(path):
+    """Read a FreeSurfer triangle surface (``lh.pial``, ``rh.white``, ``lh.sphere``, ...).
+
+    The format: the magic 0xFFFFFE, a creation line and an empty line, the vertex and face counts
+    (big-endian int32), then float32 x y z per vertex and int32 a b c per face (big-endian); any
+    tags after the faces are ignored. Coordinates are float32 in the file and exact in the result.
+
+    Raises UnreadableMeshError for a quadrangle surface, a truncated file or impossible counts.
+    """
+    path = Path(path)
+    with open(path, "rb") as handle:
+        data = handle.read()
+    if data[:3] != FREESURFER_TRIANGLES:
+        raise errors.UnreadableMeshError("cannot read %s: a FreeSurfer quadrangle surface (magic %s); only "
+                                         "the triangle format (0xFFFFFE) is read" % (path, data[:3].hex().upper()))
+    # The creation line ends in "\n\n" (FreeSurfer's own writers and nibabel's).
+    end = data.find(b"\n\n", 3, 3 + 4096)
+    if end < 0:
+        raise errors.UnreadableMeshError("cannot read %s: a FreeSurfer surface without the line that "
+                                         "ends its header" % path)
+    offset = end + 2
+    if len(data) < offset + 8:
+        raise errors.UnreadableMeshError("cannot read %s: truncated (no vertex and face counts)" % path)
+    n_vertices, n_faces = (int(c) for c in np.frombuffer(data, ">i4", 2, offset))
+    if n_vertices <= 0 or n_faces <= 0:
+        raise errors.UnreadableMeshError("cannot read %s as a mesh: the header declares %d vertices and %d "
+                                         "faces" % (path, n_vertices, n_faces))
+    offset += 8
+    needed = offset + 12 * (n_vertices + n_faces)
+    if len(data) < needed:
+        raise errors.UnreadableMeshError("cannot read %s: truncated (header promises %d vertices and %d faces: "
+                                         "%d bytes, the file has %d)" % (path, n_vertices, n_faces, needed,
+                                                                         len(data)))
+    vertices = np.frombuffer(data, ">f4", 3 * n_vertices, offset).reshape(-1, 3).astype(float)
+    faces = np.frombuffer(data, ">i4", 3 * n_faces, offset + 12 * n_vertices).reshape(-1, 3).astype(np.int64)
     return vertices, faces
+
+
+def read_gifti(path):
+    """Read a GIFTI surface (``.surf.gii``): its point set and its triangles, through nibabel.
+
+    Raises UnreadableMeshError without nibabel (the ``neuro`` extra), for a file nibabel cannot
+    parse, or for one without both arrays.
+    """
+    path = Path(path)
+    try:
+        import nibabel
+    except ImportError:
+        raise errors.UnreadableMeshError("cannot read %s: GIFTI files are read through nibabel, which is not "
+                                         "installed (pip install 'sphere_nlp[neuro]')" % path) from None
+    try:
+        image = nibabel.load(str(path))
+        arrays = {nibabel.nifti1.intent_codes.label[a.intent]: a.data for a in image.darrays}
+    except Exception as exc:                    # nibabel raises many types for bad files
+        detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise errors.UnreadableMeshError("cannot read %s as GIFTI (corrupt or truncated?): %s"
+                                         % (path, detail)) from None
+    missing = [name for name in ("pointset", "triangle") if name not in arrays]
+    if missing:
+        raise errors.UnreadableMeshError("cannot read %s as a mesh: a GIFTI file without a %s array (it has %s)"
+                                         % (path, " or ".join(missing), ", ".join(sorted(arrays)) or "none"))
+    vertices = np.asarray(arrays["pointset"], float).reshape(-1, 3)
+    faces = np.asarray(arrays["triangle"], np.int64).reshape(-1, 3)
+    return vertices, faces
+
+
 
 
 # Bytes read to recognise a file's format (a text header, or a PLY header up to end_header).
@@ -138,8 +240,9 @@ def _check_header(path, suffix):
                                                  "count)" % path)
 
 
-def _load_with_trimesh(path):
-    """Formats other than OFF and OBJ, through trimesh (with PLY header counts checked)."""
+def _load_with_trimesh(path, split=False):
+    """Formats other than OFF and OBJ, through trimesh (with PLY header counts checked); with
+    ``split``, faces of more than 3 corners are accepted as trimesh splits them."""
     import trimesh
 
     try:
@@ -151,11 +254,11 @@ def _load_with_trimesh(path):
         raise errors.UnreadableMeshError("cannot read %s as a mesh (corrupt or truncated?): %s"
                                          % (path, detail)) from None
     if path.suffix.lower() == ".ply":
-        _check_ply_counts(path, len(vertices), len(faces))
+        _check_ply_counts(path, len(vertices), len(faces), split)
     return vertices, faces
 
 
-def _check_ply_counts(path, n_vertices, n_faces):
+def _check_ply_counts(path, n_vertices, n_faces, split=False):
     """Compare a PLY header's element counts with what was read.
 
     trimesh reads a truncated ASCII PLY without complaint (it returns the faces that are there) and
@@ -179,10 +282,9 @@ def _check_ply_counts(path, n_vertices, n_faces):
     if promised_f is not None and n_faces < promised_f:
         raise errors.UnreadableMeshError("cannot read %s: truncated (header promises %d faces, found %d)"
                                          % (path, promised_f, n_faces))
-    if promised_f is not None and n_faces > promised_f:
-        raise errors.UnreadableMeshError("cannot read %s: it has faces with more than 3 corners "
-                                         "(%d faces triangulate into %d); only triangle meshes are "
-                                         "accepted" % (path, promised_f, n_faces))
+    if promised_f is not None and n_faces > promised_f and not split:
+        raise PolygonFacesError("cannot read %s: it has faces with more than 3 corners (%d faces triangulate "
+                                "into %d)" % (path, promised_f, n_faces), None, promised_f)
 
 
 def _text_lines(path, kind):
@@ -309,7 +411,7 @@ def read_off(path):
                                         % (path, line_number, i, _too_large(indices), n_vertices)) from None
     if found < n_vertices + n_faces:
         raise truncated(found)
-    _reject_polygons(path, polygons)
+    _reject_polygons(path, polygons, n_faces)
     return vertices, faces
 
 
@@ -371,7 +473,7 @@ def read_obj(path):
             known = True
     if not known:
         raise errors.UnreadableMeshError("cannot read %s: not an OBJ file (no v or f lines)" % path)
-    _reject_polygons(path, polygons)
+    _reject_polygons(path, polygons, len(face_lines))
     vertices = np.frombuffer(vertices, float).reshape(-1, 3).copy()
     faces = np.frombuffer(faces, np.int64).reshape(-1, 3).copy()
     bad = (faces < 0) | (faces >= len(vertices))
@@ -383,17 +485,28 @@ def read_obj(path):
     return vertices, faces
 
 
+# The file formats sphere_nlp reads itself, by extension (FreeSurfer's, which has none, by its first
+# bytes); any other extension goes to trimesh.
+READERS = {".off": read_off, ".obj": read_obj, ".gii": read_gifti}
+
+
 def _too_large(indices):
     """The first index that does not fit in 64 bits, or None."""
     return next((k for k in indices if not -2 ** 63 <= k < 2 ** 63), None)
 
 
-def _reject_polygons(path, polygons):
+def _reject_polygons(path, polygons, n_faces=None):
+    # read_mesh catches this and has trimesh read and split the polygons; the strict readers
+    # themselves stay triangles-only.
+    short = [(i, size) for i, size in polygons if size < 3]
+    if short:
+        i, size = short[0]
+        raise errors.UnreadableMeshError("cannot read %s: face %d has %d corner(s): a face needs at least 3"
+                                         % (path, i, size))
     if polygons:
         i, size = polygons[0]
-        raise errors.UnreadableMeshError("cannot read %s: %d face(s) are not triangles (e.g. face %d has %d "
-                                         "corners): only triangle meshes are accepted; triangulate it first"
-                                         % (path, len(polygons), i, size))
+        raise PolygonFacesError("cannot read %s: %d face(s) are not triangles (e.g. face %d has %d corners)"
+                                % (path, len(polygons), i, size), len(polygons), n_faces)
 
 
 # The open output_transaction()'s staged files, [(temporary path, destination)], or None.
@@ -552,10 +665,11 @@ def check_mesh_path(path):
 
 
 def write_mesh(path, vertices, faces, corner_uv=None, material=None):
-    """Write a triangle mesh as OFF, OBJ or PLY (ASCII), chosen by the extension.
+    """Write a triangle mesh as OFF, OBJ or PLY (ASCII), or glTF (.glb, .gltf), chosen by the extension.
 
     Coordinates are written with 17 significant digits, so they read back bit for bit and the
-    certificate computed before writing holds for the file.
+    certificate computed before writing holds for the file; glTF holds 32-bit floats (see
+    :meth:`sphere_nlp.api.SphericalParameterization.write` for how a sphere is certified for it).
 
     Parameters
     ----------
@@ -591,6 +705,9 @@ def write_mesh(path, vertices, faces, corner_uv=None, material=None):
         corner_uv = np.asarray(corner_uv, float)
         if corner_uv.shape != faces.shape + (2,):
             raise ValueError("corner_uv must have shape (t, 3, 2), got %s" % (corner_uv.shape,))
+    if suffix in GLTF_FORMATS:
+        _write_gltf(path, vertices, faces)
+        return
     vertex_lines = "\n".join("%.17g %.17g %.17g" % tuple(v) for v in vertices)
     with atomic_output(path) as out:
         if suffix == ".off":
@@ -618,6 +735,21 @@ def write_mesh(path, vertices, faces, corner_uv=None, material=None):
 
 
 MATERIAL_NAME = "sphere_nlp_texture"
+
+
+def _write_gltf(path, vertices, faces):
+    """A binary glTF (.glb) or a glTF with its buffer embedded (.gltf, one file), through trimesh:
+    positions as 32-bit floats, the faces in their order."""
+    import trimesh
+    from trimesh.exchange.gltf import export_glb, export_gltf
+
+    scene = trimesh.Scene(trimesh.Trimesh(vertices, faces, process=False))
+    if Path(path).suffix.lower() == ".glb":
+        data = export_glb(scene, include_normals=False)
+    else:
+        data = export_gltf(scene, include_normals=False, embed_buffers=True)["model.gltf"]
+    with atomic_output(path, "wb") as out:
+        out.write(data)
 
 
 def write_material(path, texture):

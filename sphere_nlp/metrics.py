@@ -178,6 +178,34 @@ def per_vertex_mean(faces, face_values, n_vertices):
         return total / count
 
 
+def distortion_fields(mesh_vertices, sphere_vertices, faces):
+    """A map's distortion where it happens: per face and per vertex arrays, to colour or analyse.
+
+    Returns a dict of arrays: ``face_log_area_ratio`` (:func:`area_log_ratio`, (t,)),
+    ``face_angle_distortion_deg`` (mean of :func:`angle_distortion` over the corners, (t,)),
+    ``corner_angle_distortion_deg`` ((t, 3)), ``face_quasi_conformal`` (:func:`quasi_conformal_ratio`,
+    (t,)), and ``vertex_log_area_ratio``, ``vertex_angle_distortion_deg`` (:func:`per_vertex_mean`
+    of the face values, (n,)). Their means are :func:`distortion_summary`'s.
+
+    Examples
+    --------
+    >>> from sphere_nlp.shapes import octahedron
+    >>> V, F = octahedron()
+    >>> d = distortion_fields(V, V, F)
+    >>> d["vertex_log_area_ratio"].shape, float(np.abs(d["face_angle_distortion_deg"]).max()) < 1e-12
+    ((6,), True)
+    """
+    mesh_vertices, faces = _arrays(mesh_vertices, faces)
+    corners = np.degrees(angle_distortion(mesh_vertices, sphere_vertices, faces))
+    log_area = area_log_ratio(mesh_vertices, sphere_vertices, faces)
+    n = len(sphere_vertices)
+    return {"face_log_area_ratio": log_area, "face_angle_distortion_deg": corners.mean(axis=1),
+            "corner_angle_distortion_deg": corners,
+            "face_quasi_conformal": quasi_conformal_ratio(mesh_vertices, sphere_vertices, faces),
+            "vertex_log_area_ratio": per_vertex_mean(faces, log_area, n),
+            "vertex_angle_distortion_deg": per_vertex_mean(faces, corners.mean(axis=1), n)}
+
+
 def _json_float(value):
     """A float for JSON: non-finite values become None (JSON has no inf or nan)."""
     value = float(value)
@@ -324,32 +352,47 @@ SHRUNK_SHARE = 1e-6
 SHRUNK_SURFACE_FRACTION = 1e-3
 
 
+def _percent(fraction):
+    """A fraction of the surface as a percentage that is never printed as 0 when it is not 0."""
+    return "%.3g%%" % (100 * fraction)
+
+
 def shrinkage_summary(mesh_vertices, sphere_vertices, faces, target):
     """How much of the surface a map has shrunk past use, and the line that says so (or None).
+
+    Two measures, each with its threshold: the mean |log area ratio| (above
+    :data:`SHRUNK_MEAN_ABS_LOG_AREA`: the triangles are on average more than a factor e off their
+    share of the sphere) and the share of the surface in triangles below :data:`SHRUNK_SHARE` of
+    their share (at least :data:`SHRUNK_SURFACE_FRACTION`). The line states the measure or measures
+    that passed their thresholds, each with its number and threshold, so its words and numbers
+    agree: a map shrunk on average but with no triangle below 1e-6 of its share is not said to have
+    "0% of its area" anywhere.
 
     Parameters
     ----------
     mesh_vertices, sphere_vertices : (n, 3) arrays
     faces : (t, 3) int array
-    target : str
+    target : str or None
         The run's mode: the line is for the angle modes, whose maps are free to shrink regions
-        (an area mode keeps each triangle's share).
+        (an area mode keeps each triangle's share); None for a sphere of unknown mode, judged by
+        its numbers alone.
 
     Returns
     -------
     dict (JSON-safe)
         ``mean_abs_log_area`` (:func:`distortion_summary`'s), ``shrunk_triangles`` (below
         :data:`SHRUNK_SHARE` of their share of the surface), ``shrunk_surface_fraction`` (their
-        share of the 3D area), ``shrunk`` (either past its threshold, in an angle mode) and
-        ``note``: one line naming the mode that keeps the regions, or None.
+        share of the 3D area), ``triggers`` (the measures past their thresholds: ``"mean"``,
+        ``"surface"``; empty in an area mode), ``shrunk`` (any trigger) and ``note``: one line
+        saying what triggered it and naming the mode that keeps the regions, or None.
 
     Examples
     --------
     >>> from sphere_nlp.shapes import octahedron
     >>> V, F = octahedron()
     >>> s = shrinkage_summary(V, V, F, "original-angles")
-    >>> s["shrunk"], s["shrunk_triangles"], s["note"]
-    (False, 0, None)
+    >>> s["shrunk"], s["shrunk_triangles"], s["triggers"], s["note"]
+    (False, 0, [], None)
     """
     mesh_vertices, faces = _arrays(mesh_vertices, faces)
     log_ratio = area_log_ratio(mesh_vertices, sphere_vertices, faces)
@@ -358,13 +401,24 @@ def shrinkage_summary(mesh_vertices, sphere_vertices, faces, target):
     small = finite & (log_ratio < np.log(SHRUNK_SHARE))
     share = normalised_areas_3d(mesh_vertices, faces) / (4 * np.pi)
     fraction = float(share[small].sum())
-    shrunk = bool(target.endswith("-angles") and (mean_abs > SHRUNK_MEAN_ABS_LOG_AREA
-                                                  or fraction >= SHRUNK_SURFACE_FRACTION))
+    triggers = []
+    if target is None or target.endswith("-angles"):
+        if fraction >= SHRUNK_SURFACE_FRACTION:
+            triggers.append("surface")
+        if mean_abs > SHRUNK_MEAN_ABS_LOG_AREA:
+            triggers.append("mean")
     note = None
-    if shrunk:
-        note = ("the map shrank parts of the surface past use: %.3g%% of its area lies in triangles below "
-                "%g of their share (mean |log area ratio| %.2f), as a conformal map does to limbs and "
-                "other protrusions; --target original-areas keeps every part its size"
-                % (100 * fraction, SHRUNK_SHARE, mean_abs))
+    if triggers:
+        reasons = []
+        if "surface" in triggers:
+            reasons.append("%s of the surface lies in triangles shrunk below %g of their share of the "
+                           "sphere (%d triangles; the limit is %s)"
+                           % (_percent(fraction), SHRUNK_SHARE, int(small.sum()), _percent(SHRUNK_SURFACE_FRACTION)))
+        if "mean" in triggers:
+            reasons.append("its triangles are on average a factor %.3g larger or smaller than their share "
+                           "of the sphere (mean |log area ratio| %.2f; the limit is %g)"
+                           % (np.exp(mean_abs), mean_abs, SHRUNK_MEAN_ABS_LOG_AREA))
+        note = ("the map shrank parts of the surface past use: %s, as a conformal map does to limbs and "
+                "other protrusions; --target original-areas keeps every part its size" % " and ".join(reasons))
     return {"mean_abs_log_area": _json_float(mean_abs), "shrunk_triangles": int(small.sum()),
-            "shrunk_surface_fraction": fraction, "shrunk": shrunk, "note": note}
+            "shrunk_surface_fraction": fraction, "triggers": triggers, "shrunk": bool(triggers), "note": note}

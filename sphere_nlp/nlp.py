@@ -49,15 +49,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import interrupts
+from .names import DEFAULT_FORMULATION, FORMULATIONS  # noqa: F401  (defined there for a light --help)
 from .settings import DEFAULT_SETTINGS
 
-FORMULATIONS = ("log-chord", "substituted", "faithful")
 # How the log-chord form is evaluated for IPOPT: "numpy" (vectorised over triangles, see
 # _LogChordValues) or "casadi" (the same functions mapped in CasADi's interpreter; the reference).
 EVALUATIONS = ("numpy", "casadi")
 # The Hessian handed to IPOPT by the log-chord form (see AngleNLP's ``hessian``).
 HESSIANS = ("exact", "clipped", "clipped-corners")
-DEFAULT_FORMULATION = "log-chord"
 
 # What the return status of a run means, the one table of them: "solved" (a result), "limit"
 # (stopped short by the caller's max_iter or max_time; its iterate can still be projected onto the

@@ -177,17 +177,28 @@ def _rejection(polished, targets, authalic_error, authalic_objective):
     return None
 
 
+# The run line's words for why the first area-keeping map is the answer (record["reason"] keeps
+# the solver's words, for --report).
+_PLAIN_REASONS = {
+    "no time left for the polish": "no time was left to refine it",
+    "the budget ended before the polish's iterate was projected onto the constraints":
+        "the time budget ended before its refinement was done",
+    "the polished map failed its certificate": "the refined map failed its certificate",
+    "the polish raised the mean |log area ratio|": "refining it would have made the areas worse",
+    "the polish did not lower objective (9)": "refining it did not improve it",
+}
+
+
 def describe(record):
-    """One clause for the run's line: which map is the answer, how far the polish got, and both
-    maps' objective (9) and mean |log area ratio|."""
-    authalic, polish = record["authalic"], record["polish"]
-    first = "authalic map %.6g / %.3g" % (authalic["objective"], authalic["mean_abs_log_area"])
+    """One clause for the run's line, in the map's terms: the first area-keeping map as it is, or
+    refined (to the best map, or as far as the time budget allowed), and why. The solver's own
+    account (objective (9), IPOPT's status and iterations) is the record's, in ``--report``."""
+    authalic = record["authalic"]
     if record["answer"] == "polished":
-        how = ("IPOPT's optimum of (9)" if polish["converged"] else
-               "IPOPT's iterate at the end of the budget, projected (--max-time none runs it to its optimum)")
-        return ("polished to %s after %d iterations: objective (9) %.6g (%s)"
-                % (how, polish["iterations"], record["objective"], first))
-    return ("the authalic map, objective (9) %.6g: %s%s"
-            % (authalic["objective"], record["reason"],
-               "" if polish is None else " (polish: IPOPT %s after %d iterations, objective %.6g)"
-               % (polish["status"], polish["iterations"], polish["objective"])))
+        if record["polish"]["converged"]:
+            return "the area-keeping map refined to the best map the solver finds"
+        return ("the area-keeping map refined as far as the time budget allowed (mean |log area ratio| "
+                "%.3g before; --max-time none refines it to the end)" % authalic["mean_abs_log_area"])
+    reason = record["reason"]
+    plain = _PLAIN_REASONS.get(reason, "its refinement failed" if reason.startswith("the polish failed") else reason)
+    return "the first area-keeping map, not refined: %s (--report has the details)" % plain

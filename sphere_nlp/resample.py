@@ -8,6 +8,7 @@ the sphere: at an icosphere's vertices (remeshing), at a grid (a geometry image)
 positions of another shape (correspondence, transfer, morphing).
 """
 
+import argparse
 import time
 from pathlib import Path
 
@@ -215,6 +216,15 @@ def similarity_fit(P, Q):
     return scale * Qr + mp
 
 
+def size_ratio(A, B):
+    """B's size over A's (maps or ``(X, F)`` pairs): the square root of their surface areas' ratio,
+    which a rotation leaves alone and a scaling by k multiplies by k."""
+    from .geometry import triangle_areas
+
+    area = [float(triangle_areas(np.asarray(m[0], float), np.asarray(m[-1])).sum()) for m in (A, B)]
+    return float(np.sqrt(area[1] / area[0])) if area[0] > 0 else float("inf")
+
+
 def morph_frames(A, B, frames, R=None, fit=False):
     """In-between shapes on A's connectivity: B resampled at A's aligned sphere, blended linearly.
 
@@ -300,21 +310,44 @@ def checked_sphere(mesh_path, sphere_path):
 
 def load_map(mesh_path, sphere_path=None, say=print, target="original-angles"):
     """``(X, S, F)`` for a mesh: read an existing sphere (checked against the mesh and certified;
-    any radius, centred at the origin) or map it."""
+    any radius, centred at the origin) or map it in the mode ``target``.
+
+    Either way ``say`` gets the shrink line of :func:`sphere_nlp.metrics.shrinkage_summary` when
+    the map has shrunk parts of the surface past use: resampling or reading values through such a
+    map loses those parts, whichever command made it.
+    """
+    from .metrics import shrinkage_summary
+
     if sphere_path is None:
         from .api import parameterize
 
         def on_stage(name):
             if name == "solve":                     # after the mesh was read and validated
-                say("mapping %s (%s)" % (mesh_path, target))
+                say("mapping %s (target %s)" % (mesh_path, target))
 
         result = parameterize(str(mesh_path), target=target, on_stage=on_stage)
-        return np.asarray(result.input_vertices, float), np.asarray(result.vertices, float), \
-            np.asarray(result.faces, np.int64)
-    found, note = checked_sphere(mesh_path, sphere_path)
+        note = result.shrinkage()["note"]
+        found = (np.asarray(result.input_vertices, float), np.asarray(result.vertices, float),
+                 np.asarray(result.faces, np.int64))
+    else:
+        found, scaled = checked_sphere(mesh_path, sphere_path)
+        if scaled:
+            say(scaled)
+        # A given sphere's mode is unknown: its numbers alone decide.
+        note = shrinkage_summary(found[0], found[1], found[2], None)["note"]
     if note:
-        say(note)
+        say("%s: %s" % (sphere_path or mesh_path, note))
     return found
+
+
+def add_target_option(parser, default, why):
+    """``--target MODE`` of a subcommand that makes maps: the mode of the maps it makes (a sphere
+    given with ``--sphere``... is used as it is)."""
+    from .targets import MODES
+
+    parser.add_argument("--target", default=default, choices=MODES, metavar="MODE",
+                        help="mode of the maps made here (%s; default %s: %s); a sphere given is used "
+                             "as it is" % (", ".join(MODES), default, why))
 
 
 def _check_inputs(*paths):
@@ -349,8 +382,8 @@ def _inputs(args, *names):
 
 def _aligned_maps(args, landmarks, say, A=None):
     """The maps of ``args.a`` (unless given) and ``args.b``, and the rotation aligning B's sphere to A's."""
-    A = load_map(args.a, args.sphere_a, say) if A is None else A
-    B = load_map(args.b, args.sphere_b, say)
+    A = load_map(args.a, args.sphere_a, say, args.target) if A is None else A
+    B = load_map(args.b, args.sphere_b, say, args.target)
     _check_landmarks(landmarks, A, B)
     return A, B, align_spheres(A, B, landmarks)
 
@@ -368,6 +401,9 @@ def resample_main(argv=None):
                         help="an existing sphere of MESH (same vertices and faces; any radius, centred at "
                              "the origin, e.g. FreeSurfer's radius-100 ?h.sphere: scaled to radius 1)")
     parser.add_argument("-o", "--output", required=True, metavar="OUT", help="remeshed shape, .off/.obj/.ply")
+    add_target_option(parser, "original-areas", "an icosphere samples the sphere evenly, so the map must "
+                                                "keep every part its size; a conformal map shrinks limbs "
+                                                "and the remesh loses them")
     parser.add_argument("-q", "--quiet", action="store_true")
 
     def check(args):
@@ -384,7 +420,7 @@ def resample_main(argv=None):
         from .mesh_io import output_transaction, write_mesh
 
         start = time.perf_counter()
-        X, S, F = load_map(args.mesh, args.sphere, say)
+        X, S, F = load_map(args.mesh, args.sphere, say, args.target)
         t_map = time.perf_counter() - start
         start = time.perf_counter()
         V, G = resample_icosphere(X, S, F, args.icosphere)
@@ -410,8 +446,8 @@ def morph_main(argv=None):
     parser = subcommand_parser(
         "morph",
         description="Write in-between meshes from A to B on A's connectivity (B resampled onto A's "
-                    "sphere after aligning the spheres), DIR/frame_000.obj..., and DIR/strip.png; "
-                    "all of them or none.")
+                    "sphere after aligning the spheres, then fitted onto A in place and size unless "
+                    "--no-fit), DIR/frame_000.obj..., and DIR/strip.png; all of them or none.")
     parser.add_argument("a", metavar="A")
     parser.add_argument("b", metavar="B")
     parser.add_argument("--frames", type=int, default=30, metavar="N", help="number of frames (default 30)")
@@ -421,8 +457,11 @@ def morph_main(argv=None):
     parser.add_argument("--landmarks", metavar="a:b,...",
                         help="vertex pairs (A index:B index, 3 or more) to align the spheres; default: "
                              "the shapes' principal axes")
-    parser.add_argument("--fit", action="store_true",
-                        help="move B onto A by the best rotation, scale and translation before blending")
+    parser.add_argument("--fit", action=argparse.BooleanOptionalAction, default=True,
+                        help="move B onto A by the best rotation, scale and translation before blending, "
+                             "so the frames change the shape, not its size or place (default; --no-fit "
+                             "blends B as it lies)")
+    add_target_option(parser, "original-angles", "the main command's")
     parser.add_argument("-q", "--quiet", action="store_true")
 
     def check(args):
@@ -445,6 +484,10 @@ def morph_main(argv=None):
         for note in args.notes:
             say(note)
         A, B, R = _aligned_maps(args, args.landmarks_parsed, say)
+        ratio = size_ratio(A, B)
+        if not args.fit and not 0.5 <= ratio <= 2:
+            say("B is %.3g times A's size (square root of the surface areas' ratio) and --no-fit keeps "
+                "it so: the frames grow or shrink as much as they change shape" % ratio)
         frames = morph_frames(A, B, args.frames, R, fit=args.fit)
         out = Path(args.out)
         created = not out.exists()
@@ -509,6 +552,7 @@ def transfer_main(argv=None):
     parser.add_argument("--landmarks", metavar="a:b,...",
                         help="vertex pairs (A index:B index, 3 or more) to align the spheres; default: "
                              "the shapes' principal axes")
+    add_target_option(parser, "original-angles", "the main command's")
     parser.add_argument("-q", "--quiet", action="store_true")
 
     def check(args):

@@ -53,11 +53,10 @@ from . import interrupts
 from .nlp import DEFAULT_FORMULATION, AngleNLP, LogChordNLP, status_kind
 from .errors import UsageError
 from .heap import arrays_on_heap
+from .names import ON_LIMIT  # noqa: F401  (what a stopped margin stage yields; defined there for a light --help)
 from .settings import DEFAULT_SETTINGS, SolverSettings
 from .starts import initial_point
 
-# What a margin stage stopped by the caller's limits yields (solve_angles's on_limit).
-ON_LIMIT = ("fail", "project")
 # The projection of a stage stopped by max_time (on_limit="project") may run past the run's
 # deadline (interrupts.deadline) by a fifth of max_time plus 5 s.
 PROJECTION_GRACE_FRACTION = 0.2

@@ -40,10 +40,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import corner_angles, triangle_areas
+from .names import CORNER_WEIGHTINGS, MODES  # noqa: F401  (defined there for a light --help)
 
-MODES = ("equal-angles", "equal-areas", "original-angles", "original-areas")
-
-CORNER_WEIGHTINGS = ("relative", "uniform")
 # Relative in the angle modes (worst quasi-conformal ratio on cheburashka.off 661 -> 85 with the
 # floors, mean angle distortion +4%); the area modes keep (9) (relative measured worse there:
 # penguin.obj original-areas QC max 727 -> 2977). See docs/tuning.md, "corner_weighting".

@@ -409,6 +409,15 @@ def test_default_output_keeps_every_part_of_the_name_but_the_extension(name, exp
     assert sorted(os.listdir(tmp_path)) == sorted([name, expected])
 
 
+def test_default_output_names_a_mode_other_than_the_default(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    write_mesh(tmp_path / "t.off", *tetrahedron())
+    assert run_cli(capsys, "t.off", "-q")[0] == 0
+    assert run_cli(capsys, "t.off", "-q", "--target", "equal-angles")[0] == 0
+    # Two maps, two files: the second did not replace the first.
+    assert sorted(os.listdir(tmp_path)) == ["t.equal-angles.sphere.off", "t.off", "t.sphere.off"]
+
+
 # --- 9. the API -----------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("kwargs", [

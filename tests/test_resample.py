@@ -216,3 +216,140 @@ def test_spharm_recovers_a_degree_two_shape():
     # Degree 1 of x = p_x alone: Y_11 = sqrt(3 / 4 pi) p_x.
     c = spharm_coefficients(S, S, F, 1)
     assert abs(c[3, 0] - np.sqrt(4 * np.pi / 3)) < 5e-3 and abs(c[0, 0]) < 1e-3
+
+
+def _recording_parameterize(monkeypatch):
+    """Every map the subcommands make, recorded as it is returned (the real solve runs)."""
+    import sphere_nlp.api as api
+
+    made = []
+    real = api.parameterize
+
+    def recording(*args, **kwargs):
+        result = real(*args, **kwargs)
+        made.append(result)
+        return result
+
+    monkeypatch.setattr(api, "parameterize", recording)
+    return made
+
+
+def test_resample_maps_in_an_area_mode_by_default(tmp_path, monkeypatch, capsys):
+    made = _recording_parameterize(monkeypatch)
+    X, F = ellipsoid(2)
+    write_mesh(tmp_path / "e.off", X, F)
+    out = tmp_path / "r.off"
+    assert main(["resample", str(tmp_path / "e.off"), "--icosphere", "2", "-o", str(out)]) == 0
+    assert "(target original-areas)" in capsys.readouterr().err
+    [result] = made
+    assert result.target == "original-areas" and result.certificate.valid
+    assert result.distortion()["mean_abs_log_area"] < 0.01          # every part kept its size
+    # The remesh written is the input's shape read through exactly that map.
+    V, G = load_mesh(out)
+    expected, _ = resample_icosphere(np.asarray(result.input_vertices), result.vertices, result.faces, 2)
+    assert np.abs(V - expected).max() < 1e-12
+
+
+def test_transfer_and_morph_map_in_the_mode_given(tmp_path, monkeypatch, capsys):
+    made = _recording_parameterize(monkeypatch)
+    X, F = ellipsoid(2)
+    write_mesh(tmp_path / "a.off", X, F)
+    write_mesh(tmp_path / "b.off", X * [1.2, 0.9, 1.0], F)
+    np.save(tmp_path / "v.npy", X[:, 0])
+    assert main(["transfer", str(tmp_path / "a.off"), str(tmp_path / "b.off"), "--values", str(tmp_path / "v.npy"),
+                 "-o", str(tmp_path / "out.npy"), "--target", "equal-angles"]) == 0
+    assert main(["morph", str(tmp_path / "a.off"), str(tmp_path / "b.off"), "--frames", "2", "--out",
+                 str(tmp_path / "m"), "--target", "equal-angles"]) == 0
+    assert [r.target for r in made] == ["equal-angles"] * 4 and all(r.certificate.valid for r in made)
+    assert capsys.readouterr().err.count("(target equal-angles)") == 4
+    assert main(["morph", str(tmp_path / "a.off"), str(tmp_path / "b.off"), "--out", str(tmp_path / "n"),
+                 "--target", "equal-area"]) == 2                  # a bad mode: refused before mapping
+    assert len(made) == 4 and not (tmp_path / "n").exists()
+
+
+def squeezed_sphere(level=3, factor=30.0):
+    """A certified sphere of icosphere(level) that shrinks one hemisphere's triangles by up to
+    ``factor``^2 (a Moebius map: stereographic projection, scaled, projected back), as a conformal
+    map shrinks a limb."""
+    S, F = icosphere(level)
+    x, y, z = (S @ rotation([1, 2, 3], 0.3).T).T         # no vertex at the pole projected from
+    u, v = factor * x / (1 - z), factor * y / (1 - z)
+    r2 = u * u + v * v
+    T = np.c_[2 * u / (1 + r2), 2 * v / (1 + r2), (r2 - 1) / (1 + r2)]
+    assert certify(T, F).valid
+    return T, F
+
+
+def test_a_given_sphere_that_shrank_parts_gets_the_shrink_line(tmp_path, capsys):
+    S, F = icosphere(3)
+    T, _ = squeezed_sphere(3)
+    write_mesh(tmp_path / "a.off", S, F)
+    write_mesh(tmp_path / "a.sphere.off", T, F)
+    write_mesh(tmp_path / "round.sphere.off", S, F)
+    assert main(["resample", str(tmp_path / "a.off"), "--sphere", str(tmp_path / "a.sphere.off"),
+                 "--icosphere", "1", "-o", str(tmp_path / "r.off")]) == 0
+    [line] = [x for x in capsys.readouterr().err.splitlines() if "shrank parts of the surface" in x]
+    assert str(tmp_path / "a.sphere.off") in line and "--target original-areas" in line
+    assert main(["resample", str(tmp_path / "a.off"), "--sphere", str(tmp_path / "round.sphere.off"),
+                 "--icosphere", "1", "-o", str(tmp_path / "r2.off")]) == 0
+    assert "shrank" not in capsys.readouterr().err
+
+
+def test_morph_fits_b_onto_a_unless_told_not_to(tmp_path, capsys):
+    S, F = icosphere(2)
+    X = bumpy(S)
+    Q = rotation([1, -1, 2], 0.8)
+    write_mesh(tmp_path / "a.off", X, F)
+    write_mesh(tmp_path / "b.off", 2.5 * X @ Q.T + [1, 2, 3], F)
+    write_mesh(tmp_path / "s.off", S, F)
+    common = [str(tmp_path / "a.off"), str(tmp_path / "b.off"), "--sphere-a", str(tmp_path / "s.off"),
+              "--sphere-b", str(tmp_path / "s.off"), "--frames", "3", "--landmarks", "0:0,5:5,9:9,20:20"]
+    assert main(["morph", *common, "--out", str(tmp_path / "fit")]) == 0
+    for k in range(3):                           # the same shape 2.5 times larger: nothing moves
+        assert np.abs(load_mesh(tmp_path / "fit" / ("frame_%03d.obj" % k))[0] - X).max() < 1e-6
+    assert "size" not in capsys.readouterr().err
+    assert main(["morph", *common, "--out", str(tmp_path / "kept"), "--no-fit"]) == 0
+    last = load_mesh(tmp_path / "kept" / "frame_002.obj")[0]
+    assert np.abs(last - (2.5 * X @ Q.T + [1, 2, 3])).max() < 1e-6
+    assert "B is 2.5 times A's size" in capsys.readouterr().err
+
+
+def pinched_fan(level=3, vertex=100, factor=3e-4):
+    """icosphere(level) and a certified sphere of it whose one vertex's fan is shrunk ``factor``
+    times across (1e-7 of its area): a small part of the surface collapsed, the rest as it was."""
+    S, F = icosphere(level)
+    ring = np.unique(F[(F == vertex).any(axis=1)])
+    T = S.copy()
+    T[ring] = S[vertex] + factor * (S[ring] - S[vertex])
+    T /= np.linalg.norm(T, axis=1, keepdims=True)
+    assert certify(T, F).valid
+    return S, T, F
+
+
+def test_the_shrink_line_says_what_triggered_it_in_numbers_that_agree():
+    from sphere_nlp.metrics import SHRUNK_SHARE, area_log_ratio, normalised_areas_3d, shrinkage_summary
+
+    def measured(X, S, F):
+        log_ratio = area_log_ratio(X, S, F)
+        small = log_ratio < np.log(SHRUNK_SHARE)
+        return float(np.abs(log_ratio).mean()), float(normalised_areas_3d(X, F)[small].sum() / (4 * np.pi)), \
+            int(small.sum())
+
+    # Shrunk on average, no triangle below 1e-6 of its share (koala's case): the line speaks of
+    # the average alone, never of "0% of its area".
+    S, F = icosphere(3)
+    T, _ = squeezed_sphere(3)
+    mean, fraction, count = measured(S, T, F)
+    s = shrinkage_summary(S, T, F, "original-angles")
+    assert fraction == 0 and mean > 1 and s["triggers"] == ["mean"]
+    assert "%.2f" % mean in s["note"] and "factor %.3g" % np.exp(mean) in s["note"]
+    assert "of the surface lies" not in s["note"] and "0%" not in s["note"]
+    # A small part collapsed, the average barely moved: the line names the part's share and count.
+    X, T, F = pinched_fan()
+    mean, fraction, count = measured(X, T, F)
+    s = shrinkage_summary(X, T, F, "equal-angles")
+    assert mean < 1 and fraction >= 1e-3 and s["triggers"] == ["surface"]
+    assert "%.3g%% of the surface" % (100 * fraction) in s["note"] and "(%d triangles" % count in s["note"]
+    assert "mean |log area ratio|" not in s["note"]
+    # An area mode's map is not judged (it keeps each triangle's share by its targets).
+    assert shrinkage_summary(X, T, F, "original-areas")["note"] is None

@@ -334,7 +334,8 @@ def test_cli_says_how_many_corners_an_area_mode_collapsed_and_what_ended_on_a_fl
                  "--corner-floor", "0.1"]) == 0
     err = capsys.readouterr().err
     assert "below 0.1 x their target" not in err
-    assert "%d corners (--corner-floor)" % floored.floor_corners in err and "ended on their floors" in err
+    assert ("the map held %d corners at their smallest allowed angle (0.1 x their target: --corner-floor)"
+            % floored.floor_corners) in err
 
 
 def test_a_map_that_cannot_be_placed_is_solved_again_with_a_higher_area_floor():
