@@ -38,6 +38,7 @@ import csv
 import glob
 import io
 import json
+import math
 import os
 import re
 import signal
@@ -1130,6 +1131,9 @@ def check_arguments(args):
                                 "decide how many meshes run at a time")
     if args.retries < 0:
         raise errors.UsageError("--retries must be 0 or more, not %d" % args.retries)
+    if args.max_time is not None and not (math.isfinite(args.max_time) and args.max_time > 0):
+        # As for a single mesh: inf is no number of seconds (and would not survive the JSON summary).
+        raise errors.UsageError("--max-time must be a finite number of seconds > 0, not %s" % args.max_time)
     try:
         check_run_options(args.target, args.formulation, args.on_limit, args.max_iter, args.max_time,
                           args.angle_weight, args.area_weight)

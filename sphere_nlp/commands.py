@@ -24,6 +24,8 @@ import os
 import signal
 import sys
 import tempfile
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 from . import errors, interrupts
@@ -121,6 +123,27 @@ class SafeStream:
             return False
 
 
+@contextmanager
+def warnings_silenced(quiet):
+    """With ``-q`` (``quiet`` true) Python warnings inside the block are not printed, since ``-q``
+    prints only errors; worker processes started inside (``batch``) inherit that through
+    PYTHONWARNINGS, which a new interpreter reads as it starts."""
+    if not quiet:
+        yield
+        return
+    saved = os.environ.get("PYTHONWARNINGS")
+    os.environ["PYTHONWARNINGS"] = "ignore"
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield
+    finally:
+        if saved is None:
+            os.environ.pop("PYTHONWARNINGS", None)
+        else:
+            os.environ["PYTHONWARNINGS"] = saved
+
+
 def run_subcommand(parser, argv, body, interrupted="nothing more written", check=None):
     """Run a subcommand with the main command's contract; its exit status.
 
@@ -154,7 +177,7 @@ def run_subcommand(parser, argv, body, interrupted="nothing more written", check
         return 128 + signum
 
     try:
-        with interrupts.handled_signals():
+        with interrupts.handled_signals(), warnings_silenced(getattr(args, "quiet", False)):
             if check is not None:
                 check(args)
             status = body(args, say)

@@ -286,6 +286,59 @@ def test_view_takes_a_negative_azimuth_as_its_own_argument(tmp_path, capsys):
     assert "expected AZIMUTH,ELEVATION" in one_line(capsys.readouterr().err, "sphere-nlp: error:")
 
 
+@pytest.mark.parametrize("option,fragment", [
+    (["--view", "nan,20"], "must be finite numbers of degrees, not 'nan,20'"),
+    (["--view=inf,20"], "must be finite numbers of degrees, not 'inf,20'"),
+    (["--view=-60,inf"], "must be finite numbers of degrees"),
+    (["--view", "10,95"], "the elevation must be between -90 and 90 degrees, not 95"),
+    (["--corner-floor", "nan"], "--corner-floor must be a number in [0, 1)"),
+    (["--area-floor", "1"], "--area-floor must be a number in [0, 1)"),
+    (["--area-floor=-0.5"], "--area-floor must be a number in [0, 1)"),
+    (["--angle-weight", "inf"], "--angle-weight must be a finite number"),
+    (["--area-weight", "-1"], "--area-weight must be a finite number >= 0"),
+    (["--max-time", "nan"], "--max-time must be a finite number"),
+    (["--max-iter", "0"], "--max-iter must be >= 1"),
+    (["--up", "w"], "argument --up"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
+def test_every_numeric_option_is_checked_before_solving(option, fragment, tmp_path, capsys):
+    outputs = ["-o", str(tmp_path / "s.off"), "--png", str(tmp_path / "p.png")]
+    started = time.perf_counter()
+    assert main([str(MODELS / "cylinder.off"), *outputs, *option, "-q"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "\n" not in line and line.startswith("sphere-nlp: error: ") and fragment in line, line
+    assert time.perf_counter() - started < 5 and os.listdir(tmp_path) == []
+
+
+def test_batch_max_time_must_be_finite(tmp_path, capsys):
+    assert main(["batch", str(MODELS / "cylinder.off"), "--out", str(tmp_path / "o"), "--max-time", "inf"]) == 2
+    assert "--max-time must be a finite number of seconds > 0, not inf" in capsys.readouterr().err
+    assert os.listdir(tmp_path) == []
+
+
+# A run whose picture step meets a warning, as numpy's RuntimeWarnings or a library's notes reach it.
+WARNING_PROGRAM = """
+import runpy, sys, warnings
+from sphere_nlp import picture
+render_png = picture.render_png
+def warned(*args, **kwargs):
+    warnings.warn("invalid value encountered in divide", RuntimeWarning)
+    return render_png(*args, **kwargs)
+picture.render_png = warned
+sys.argv = ["sphere-nlp"] + sys.argv[1:]
+runpy.run_module("sphere_nlp", run_name="__main__")
+"""
+
+
+def test_quiet_silences_warnings_too(tmp_path):
+    for quiet in ([], ["-q"]):
+        p = subprocess.run([sys.executable, "-c", WARNING_PROGRAM, str(MODELS / "cylinder.off"), "-o",
+                            str(tmp_path / "s.off"), "--png", str(tmp_path / "p.png"), *quiet],
+                           capture_output=True, text=True, env=env(), cwd=tmp_path)
+        assert p.returncode == 0, p.stderr
+        assert ("RuntimeWarning" in p.stderr) == (not quiet), p.stderr
+    assert p.stderr == ""                                   # -q: errors only, and there was none
+
+
 @pytest.fixture
 def meshes(tmp_path):
     S, F = icosphere(2)
