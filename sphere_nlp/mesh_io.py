@@ -698,6 +698,28 @@ def staged_outputs():
     _staged = None
 
 
+@contextmanager
+def created_folder(folder):
+    """Create ``folder`` (and its missing parents) for the block; if the block raises, remove again
+    the folders it created, when they are empty: a run that writes nothing leaves no folder."""
+    folder = Path(folder)
+    missing = []
+    for parent in (folder, *folder.parents):
+        if parent.exists():
+            break
+        missing.append(parent)
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        yield folder
+    except BaseException:
+        for path in missing:                    # deepest first
+            try:
+                path.rmdir()
+            except OSError:
+                break
+        raise
+
+
 def commit_staged(staged, remove=()):
     """Rename files staged by :func:`staged_outputs` into place in their order, after removing the
     paths ``remove`` (outputs of an earlier run that this one replaces with nothing). Signals are

@@ -25,6 +25,7 @@ import pytest
 
 import meshgen
 from conftest import MODELS, shared_mesh
+from sphere_nlp import errors
 from sphere_nlp.certify import certify
 from sphere_nlp.cli import main
 from sphere_nlp.commands import SUBCOMMANDS
@@ -471,3 +472,35 @@ def test_max_time_counts_from_the_start_of_the_process(tmp_path):
     line = p.stderr.strip().splitlines()[-1]
     assert "Maximum_WallTime_Exceeded" in line and "before IPOPT's first iteration" in line
     assert line.endswith("; nothing written") and not (tmp_path / "s.off").exists()
+
+
+@pytest.mark.parametrize("raised,line", [
+    (lambda: errors.SolveError("the angle solve failed (IPOPT status Invalid_Number_Detected after 0 "
+                               "iterations)"),
+     "sphere-nlp resample: error: the angle solve failed (IPOPT status Invalid_Number_Detected after 0 "
+     "iterations); nothing written"),
+    (lambda: errors.CertificateError("the sphere failed its certificate: 2 flipped triangles"),
+     "sphere-nlp resample: error: the sphere failed its certificate: 2 flipped triangles; nothing written"),
+    (MemoryError, "sphere-nlp resample: error: out of memory; nothing written"),
+    (lambda: KeyError("x"), "sphere-nlp resample: internal error: KeyError: 'x'; nothing written"),
+])
+def test_every_exit_1_line_of_a_subcommand_says_what_was_written(raised, line, capsys):
+    from sphere_nlp.commands import run_subcommand, subcommand_parser
+
+    def body(args, say):
+        raise raised()
+
+    status = run_subcommand(subcommand_parser("resample", "test"), [], body, interrupted="nothing written")
+    assert status == 1
+    assert capsys.readouterr().err.splitlines() == [line]
+
+
+def test_a_failed_batch_says_what_it_wrote_even_when_quiet(tmp_path, capsys):
+    write_mesh(tmp_path / "torus.off", *meshgen.torus())
+    write_mesh(tmp_path / "ball.off", *icosphere(1))
+    out = tmp_path / "out"
+    assert main(["batch", str(tmp_path / "torus.off"), str(tmp_path / "ball.off"), "--out", str(out), "-q"]) == 1
+    assert capsys.readouterr().err.splitlines() == [
+        "sphere-nlp batch: error: 1 of 2 mesh(es) failed (reasons in %s); wrote the 1 certified (0 already "
+        "done) and the summary to %s" % (out / "summary.md", out)]
+    assert (out / "ball.sphere.off").exists() and not (out / "torus.sphere.off").exists()
