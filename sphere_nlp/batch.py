@@ -38,6 +38,7 @@ import csv
 import glob
 import io
 import json
+import math
 import os
 import re
 import signal
@@ -1130,6 +1131,9 @@ def check_arguments(args):
                                 "decide how many meshes run at a time")
     if args.retries < 0:
         raise errors.UsageError("--retries must be 0 or more, not %d" % args.retries)
+    if args.max_time is not None and not (math.isfinite(args.max_time) and args.max_time > 0):
+        # As for a single mesh: inf is no number of seconds (and would not survive the JSON summary).
+        raise errors.UsageError("--max-time must be a finite number of seconds > 0, not %s" % args.max_time)
     try:
         check_run_options(args.target, args.formulation, args.on_limit, args.max_iter, args.max_time,
                           args.angle_weight, args.area_weight)
@@ -1192,12 +1196,22 @@ def main(argv=None):
                 client.close()
         failed = [row for row in rows if row["status"] not in CERTIFIED]
         resumed = sum(bool(row["resumed"]) for row in rows)
-        say("%d certified (%d already done), %d failed; summary in %s"
-            % (len(rows) - len(failed), resumed, len(failed), Path(args.out) / "summary.md"))
-        return 1 if failed else 0
+        if failed:
+            # An error line, shown with -q too: what failed and what was written.
+            stderr.write("sphere-nlp batch: error: %d of %d mesh(es) failed (reasons in %s); wrote the %d "
+                         "certified (%d already done) and the summary to %s\n"
+                         % (len(failed), len(rows), Path(args.out) / "summary.md", len(rows) - len(failed),
+                            resumed, args.out))
+            return 1
+        say("%d certified (%d already done), 0 failed; summary in %s"
+            % (len(rows), resumed, Path(args.out) / "summary.md"))
+        return 0
 
     def interrupted(args):
         return ("every worker stopped; the meshes done so far are in %s, listed in its summary.csv; run the "
                 "same command again to go on" % args.out)
 
-    return run_subcommand(parser, argv, body, check=check, interrupted=interrupted)
+    def failed(args):
+        return "the meshes done so far are in %s, listed in its summary.csv" % args.out
+
+    return run_subcommand(parser, argv, body, check=check, interrupted=interrupted, failed=failed)

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from . import __version__, errors, interrupts
 from .commands import (PROG, SUBCOMMANDS, SafeStream, UsageParser, check_output_paths as _check_paths,
-                       subcommand_lines, subcommand_main, unknown_command)
+                       subcommand_lines, subcommand_main, unknown_command, warnings_silenced)
 
 # SolverSettings' area_floor, repeated so that --help need not import numpy (tests/test_ux.py
 # checks that the two agree).
@@ -248,11 +248,21 @@ def floor_note(result, corner_floor, area_floor=None):
 
 
 def _view(text):
-    """``AZ,EL`` in degrees, for --view."""
+    """``AZ,EL`` in degrees, for --view: a finite azimuth and an elevation in [-90, 90] (a NaN
+    camera draws blank panels).
+
+    >>> _view("-60,20")
+    (-60.0, 20.0)
+    """
     try:
         azimuth, elevation = (float(word) for word in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError("expected AZIMUTH,ELEVATION in degrees, e.g. -60,20; got %r" % text)
+    if not (math.isfinite(azimuth) and math.isfinite(elevation)):
+        raise argparse.ArgumentTypeError("the azimuth and elevation must be finite numbers of degrees, "
+                                         "not %r" % text)
+    if not -90 <= elevation <= 90:
+        raise argparse.ArgumentTypeError("the elevation must be between -90 and 90 degrees, not %g" % elevation)
     return azimuth, elevation
 
 
@@ -343,6 +353,9 @@ def check_arguments(args):
         raise errors.UsageError("--max-time must be > 0 seconds, not %g" % seconds)
     if args.max_iter is not None and args.max_iter <= 0:
         raise errors.UsageError("--max-iter must be >= 1, not %d" % args.max_iter)
+    for option, value in (("--corner-floor", args.corner_floor), ("--area-floor", args.area_floor)):
+        if value is not None and not 0 <= value < 1:            # NaN fails too
+            raise errors.UsageError("%s must be a number in [0, 1) (0: no floor), not %s" % (option, value))
     try:
         _check_arguments(angle_weight=args.angle_weight, area_weight=args.area_weight,
                          max_iter=args.max_iter, max_time=seconds, ipopt_options=None)
@@ -525,7 +538,7 @@ def main(argv=None):
         return 128 + signum
 
     try:
-        with interrupts.handled_signals():
+        with interrupts.handled_signals(), warnings_silenced(args.quiet):
             try:
                 try:
                     status = run(args, progress)

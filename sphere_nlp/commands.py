@@ -24,6 +24,8 @@ import os
 import signal
 import sys
 import tempfile
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 from . import errors, interrupts
@@ -121,7 +123,28 @@ class SafeStream:
             return False
 
 
-def run_subcommand(parser, argv, body, interrupted="nothing more written", check=None):
+@contextmanager
+def warnings_silenced(quiet):
+    """With ``-q`` (``quiet`` true) Python warnings inside the block are not printed, since ``-q``
+    prints only errors; worker processes started inside (``batch``) inherit that through
+    PYTHONWARNINGS, which a new interpreter reads as it starts."""
+    if not quiet:
+        yield
+        return
+    saved = os.environ.get("PYTHONWARNINGS")
+    os.environ["PYTHONWARNINGS"] = "ignore"
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield
+    finally:
+        if saved is None:
+            os.environ.pop("PYTHONWARNINGS", None)
+        else:
+            os.environ["PYTHONWARNINGS"] = saved
+
+
+def run_subcommand(parser, argv, body, interrupted="nothing more written", check=None, failed=None):
     """Run a subcommand with the main command's contract; its exit status.
 
     ``check(args)``, if given, checks every input, option value and output path and raises on the
@@ -130,7 +153,9 @@ def run_subcommand(parser, argv, body, interrupted="nothing more written", check
     always the only line. Bad usage and input (:class:`~sphere_nlp.errors.SphereNLPError`) and file
     system errors end it with one line ``PROG: error: ...`` (exit 2 for usage, input and files);
     SIGINT / SIGTERM with one line saying ``interrupted`` and what was left (``interrupted``, a
-    string or a function of ``args``), exit 130 / 143; anything else with one "internal error" line.
+    string or a function of ``args``), exit 130 / 143; a failed solve or certificate, running out of
+    memory and anything else (one "internal error" line) exit 1 with a line that ends with what was
+    left (``failed``, as ``interrupted``, which it defaults to).
     """
     stderr = SafeStream(sys.stderr)
     prog = parser.prog
@@ -148,13 +173,19 @@ def run_subcommand(parser, argv, body, interrupted="nothing more written", check
             stderr.write("%s: %s\n" % (prog, line))
             stderr.flush()
 
+    def left(what):
+        return what(args) if callable(what) else what
+
     def interrupted_line(signum):
-        left = interrupted(args) if callable(interrupted) else interrupted
-        stderr.write("%s: interrupted; %s (%s)\n" % (prog, left, signal.Signals(signum).name))
+        stderr.write("%s: interrupted; %s (%s)\n" % (prog, left(interrupted), signal.Signals(signum).name))
         return 128 + signum
 
+    def failure_line(message):
+        stderr.write("%s: %s; %s\n" % (prog, message, left(interrupted if failed is None else failed)))
+        return 1
+
     try:
-        with interrupts.handled_signals():
+        with interrupts.handled_signals(), warnings_silenced(getattr(args, "quiet", False)):
             if check is not None:
                 check(args)
             status = body(args, say)
@@ -165,6 +196,8 @@ def run_subcommand(parser, argv, body, interrupted="nothing more written", check
     except KeyboardInterrupt as exc:
         return interrupted_line(getattr(exc, "signum", signal.SIGINT))
     except errors.SphereNLPError as exc:
+        if exc.exit_status == 1:                # the solve or the certificate failed
+            return failure_line("error: %s" % exc)
         stderr.write("%s: error: %s\n" % (prog, exc))
         return exc.exit_status
     except OSError as exc:
@@ -174,13 +207,11 @@ def run_subcommand(parser, argv, body, interrupted="nothing more written", check
         stderr.write("%s: error: %s%s\n" % (prog, where, exc.strerror or exc))
         return 2
     except MemoryError:
-        stderr.write("%s: error: out of memory\n" % prog)
-        return 1
+        return failure_line("error: out of memory")
     except Exception as exc:  # a bug: still one line
         if interrupts.program_signal() is not None:    # a signal broke a library (an import, say)
             return interrupted_line(interrupts.program_signal())
-        stderr.write("%s: internal error: %s: %s\n" % (prog, type(exc).__name__, exc))
-        return 1
+        return failure_line("internal error: %s: %s" % (type(exc).__name__, exc))
 
 
 # ----------------------------------------------------------------------------------- output paths

@@ -5,22 +5,22 @@ Markdown table ``DIR/compare.md``, with the validity and distortion of :func:`sp
 distortion_summary` and the wall-clock time. A method that fails (a solve that does not converge, a map
 with flipped triangles, an exception) is a row with ``valid`` false and a ``status`` saying why, not an
 error: both files are rewritten atomically after every row, so an interrupted run keeps what it did.
-A mesh that cannot be read or is not a valid genus-0 surface is reported before anything runs, gets one
-row saying why (method ``-``), and the other meshes still run. ``--save-maps`` also writes each valid
-map's sphere (OBJ with texture coordinates) and picture.
+The command checks every mesh before anything runs: one that cannot be read or is not a valid genus-0
+surface ends it there (exit 2, nothing run or written). :func:`compare` itself, called from Python,
+gives such a mesh one row saying why (method ``-``) and runs the others. ``--save-maps`` also writes
+each valid map's sphere (OBJ with texture coordinates) and picture.
 
 Methods: ``sphere_nlp:<mode>`` for the four target modes (``sphere_nlp`` selects all four),
 ``conformal``, ``cmcf``, ``alexa`` and ``tutte-projection`` (see :mod:`sphere_nlp.baselines`); ``all``
 for every one. By default :data:`DEFAULT_METHODS`: sphere_nlp's conformal mode against the two conformal
 baselines, seconds per mesh (the area modes and Alexa's relaxation take minutes on large meshes).
 
-Exit status: 0 all rows written (whatever their validity); 2 an unknown method, a bad option value, an
-output folder that cannot be written or an output that would replace an input (nothing run), or a mesh
-was rejected (the others ran); 130 / 143 interrupted (the rows done so far are kept).
+Exit status: 0 all rows written (whatever their validity); 2 an unknown method, a bad option value, a
+rejected mesh, an output folder that cannot be written or an output that would replace an input (found
+before anything runs; nothing written); 130 / 143 interrupted (the rows done so far are kept).
 """
 
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -229,7 +229,8 @@ def save_map(out_dir, name, method, mesh_vertices, positions, faces):
     return [sphere, picture]
 
 
-def compare(paths, out_dir, methods=DEFAULT_METHODS, max_time=None, progress=None, save_maps=False):
+def compare(paths, out_dir, methods=DEFAULT_METHODS, max_time=None, progress=None, save_maps=False,
+            loaded=None):
     """Run ``methods`` on every mesh in ``paths``; write and return the rows.
 
     Parameters
@@ -245,6 +246,8 @@ def compare(paths, out_dir, methods=DEFAULT_METHODS, max_time=None, progress=Non
         Receives one line per row, and one per rejected mesh before anything runs.
     save_maps : bool
         Also write each valid map's sphere and picture into ``out_dir`` (:func:`save_map`).
+    loaded : tuple, optional
+        What :func:`load_meshes` returned for ``paths``, if it was called already.
 
     Returns
     -------
@@ -267,7 +270,7 @@ def compare(paths, out_dir, methods=DEFAULT_METHODS, max_time=None, progress=Non
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise errors.UsageError("unknown method(s) %s; choose from %s" % (", ".join(unknown), ", ".join(METHODS)))
-    meshes, rejected = load_meshes(paths)
+    meshes, rejected = load_meshes(paths) if loaded is None else loaded
     if not meshes:
         first = rejected[0][1]
         raise errors.MeshInputError(first if len(rejected) == 1 else "%s (and %d more rejected)"
@@ -314,8 +317,8 @@ def main(argv=None):
     parser = subcommand_parser(
         "compare",
         description="Map meshes with sphere_nlp and with baseline methods; write the validity and "
-                    "distortion of every map to DIR/compare.json and DIR/compare.md. A rejected mesh "
-                    "is reported and skipped; the others run.")
+                    "distortion of every map to DIR/compare.json and DIR/compare.md. Every mesh is "
+                    "checked first: a rejected one ends the command before anything runs.")
     parser.add_argument("meshes", nargs="+", metavar="MESH", help="input meshes")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.add_argument("--methods", default=",".join(DEFAULT_METHODS),
@@ -337,16 +340,19 @@ def main(argv=None):
             outputs = output_files(args.meshes, args.method_list, args.out, args.save_maps)
             check_output_paths([("an input mesh", path) for path in args.meshes],
                                [("--out", path) for path in outputs])
+        # Every mesh read and validated before the first one is solved: exit 2 means nothing ran.
+        args.loaded = load_meshes(args.meshes)
+        rejected = args.loaded[1]
+        if rejected:
+            raise errors.MeshInputError(rejected[0][1] + ("" if len(rejected) == 1 else
+                                                          " (and %d more mesh(es) rejected)" % (len(rejected) - 1)))
 
     def body(args, say):
         rows = compare(args.meshes, args.out, methods=args.method_list, max_time=args.max_time, progress=say,
-                       save_maps=args.save_maps)
+                       save_maps=args.save_maps, loaded=args.loaded)
         say("wrote %s and %s (%d rows, %d valid)" % (Path(args.out) / "compare.json", Path(args.out) / "compare.md",
                                                      len(rows), sum(bool(r["valid"]) for r in rows)))
-        rejected = [r for r in rows if r["method"] == REJECTED_METHOD]
-        for row in rejected:
-            print("sphere-nlp compare: error: %s (skipped)" % row["status"].split(": ", 1)[1], file=sys.stderr)
-        return 2 if rejected else 0
+        return 0
 
     return run_subcommand(parser, argv, body, check=check,
                           interrupted=lambda args: "the rows done so far are in %s" % args.out)

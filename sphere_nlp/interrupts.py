@@ -64,6 +64,17 @@ def _handler(signum, frame):
         raise Interrupted(signum)
 
 
+def _unraisable_hook(unraisable):
+    """sys.unraisablehook inside :func:`handled_signals`. A signal that arrives while a finaliser
+    runs (a ``__del__``, a weakref callback: CasADi and matplotlib objects freed mid-run) is raised
+    there, where Python cannot propagate it and prints it as "Exception ignored in ..." with a
+    traceback. It is recorded already (the handler sets the pending signal first), and the run
+    stops on it at its next check, so nothing is printed; anything else goes to the usual hook."""
+    if isinstance(unraisable.exc_value, Interrupted):
+        return
+    sys.__unraisablehook__(unraisable)
+
+
 def _program_handler(signum, frame):
     """Outside the run's own handling: during start-up end at once (nothing is written yet); after
     the run, or while it is stopping, keep the status it has."""
@@ -190,7 +201,9 @@ def handled_signals(signals=SIGNALS, only_default=False):
     if _program_clock is not None:      # the program's own start-up handling counts as the default
         defaults = dict.fromkeys(SIGNALS, _program_handler)
     previous = {}
+    hook = sys.unraisablehook
     try:
+        sys.unraisablehook = _unraisable_hook
         for s in signals:
             if not only_default or signal.getsignal(s) is defaults.get(s):
                 previous[s] = signal.signal(s, _handler)
@@ -200,6 +213,7 @@ def handled_signals(signals=SIGNALS, only_default=False):
             _run_over = True                # signals from here on: see _program_handler
         for s, handler in previous.items():
             signal.signal(s, handler)
+        sys.unraisablehook = hook
         _pending, _deferred, _committed = None, saved, False
 
 

@@ -482,6 +482,12 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
     faces = np.asarray(faces, np.int64)
     if measure not in MEASURES:
         raise ValueError("measure must be one of %s, got %r" % (", ".join(MEASURES), measure))
+    if view is not None:
+        view = tuple(float(a) for a in view)
+        # A NaN or infinite camera draws every panel blank.
+        if len(view) != 2 or not np.isfinite(view).all() or not -90 <= view[1] <= 90:
+            raise ValueError("view must be (azimuth, elevation): finite degrees, the elevation in "
+                             "[-90, 90]; got %r" % (view,))
     label, colour_map_name = MEASURES[measure]
     values = triangle_measure(mesh_vertices, sphere_vertices, faces, measure)
     low, high, ticks, clipped = colour_range(values, normalised_areas_3d(mesh_vertices, faces), measure)
@@ -494,7 +500,7 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
     up_text = up if isinstance(up, str) else "(%.2g, %.2g, %.2g)" % tuple(up_vector(up))
     upright = upright_rotation(up)
     mesh = _normalised(mesh_vertices @ upright.T)
-    view = tuple(float(a) for a in view) if view is not None else best_view(mesh, faces)
+    view = view if view is not None else best_view(mesh, faces)
     sphere = sphere_vertices @ (upright @ align_sphere_to_mesh(mesh_vertices, sphere_vertices)).T
     edges = len(faces) <= 2000
     if corner_uv is None:

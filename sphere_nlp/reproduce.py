@@ -8,19 +8,18 @@ in (e) the black triangle stays right-angled; in (f) the cap triangles get much 
 
 :func:`reproduce_fig3` writes ``fig3.png`` (the six panels), ``fig3_a.off`` ... ``fig3_f.off`` (the
 meshes) and ``fig3.json`` (the numbers behind the findings, one object per panel; see
-:func:`panel_metrics`).
+:func:`panel_metrics`), all together at the end: an interrupted run writes nothing.
 """
 
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from . import geometry
+from . import errors, geometry
 from .baselines import alexa_relaxation
 from .certify import signed_solid_angles, spherical_angles
-from .mesh_io import atomic_output, write_json, write_mesh
+from .mesh_io import atomic_output, created_folder, output_transaction, write_json, write_mesh
 from .shapes import cylinder
 
 SEGMENTS, RINGS = 12, 6            # the cylinder of models/cylinder.off
@@ -168,11 +167,13 @@ def render_fig3(path, vertices, faces, panel_positions):
         fig.savefig(out, format="png")
 
 
-def reproduce_fig3(out_dir, progress=None):
+def reproduce_fig3(out_dir, progress=None, all_certified=False):
     """Compute, measure, draw and write the six panels of Fig. 3 into ``out_dir``.
 
     Writes ``fig3.png``, ``fig3_<panel>.off`` for every certified panel (an uncertified sphere is
-    never written) and ``fig3.json``.
+    never written) and ``fig3.json``, renamed into place together once all are done
+    (:func:`~sphere_nlp.mesh_io.output_transaction`): on an exception or a signal nothing is written,
+    and a folder this call created is removed again.
 
     Parameters
     ----------
@@ -180,6 +181,9 @@ def reproduce_fig3(out_dir, progress=None):
         Created if missing.
     progress : callable(str), optional
         Receives one line per panel.
+    all_certified : bool
+        Raise :class:`~sphere_nlp.errors.CertificateError` naming the panels whose sphere failed,
+        and write nothing, instead of writing the figure with those panels.
 
     Returns
     -------
@@ -188,10 +192,18 @@ def reproduce_fig3(out_dir, progress=None):
         ``time_s`` and the numbers of :func:`panel_metrics`, plus ``iterations`` and (for (b))
         ``converged``.
     """
+    with created_folder(out_dir) as out_dir, output_transaction():     # every file, or none
+        records = _fig3_files(out_dir, progress)
+        failed = [r["panel"] for r in records if not r["valid"]]
+        if all_certified and failed:
+            raise errors.CertificateError("panel(s) %s not certified" % ", ".join(failed))
+        return records
+
+
+def _fig3_files(out_dir, progress):
+    """The work of :func:`reproduce_fig3`, its files written inside the caller's transaction."""
     from .api import parameterize
 
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     vertices, faces = cylinder(SEGMENTS, RINGS)
     panel_positions, records = {}, []
     for panel, method, target, caption in FIG3_PANELS:
@@ -231,7 +243,8 @@ FIGURES = {"fig3": reproduce_fig3}
 
 
 def main(argv=None):
-    """``python -m sphere_nlp reproduce FIGURE [--out DIR]``; exit 0 when every panel is certified."""
+    """``python -m sphere_nlp reproduce FIGURE [--out DIR]``; exit 0 when every panel is certified, 1
+    (nothing written) when one is not."""
     from .commands import check_output_folder, run_subcommand, subcommand_parser
 
     parser = subcommand_parser(
@@ -246,13 +259,9 @@ def main(argv=None):
         check_output_folder("--out", args.out)
 
     def body(args, say):
-        records = FIGURES[args.figure](args.out, progress=say)
-        failed = [r["panel"] for r in records if not r["valid"]]
+        # A panel that fails its certificate fails the run: exit 1, nothing written.
+        FIGURES[args.figure](args.out, progress=say, all_certified=True)
         say("wrote %s" % (Path(args.out) / ("%s.png" % args.figure)))
-        if failed:
-            print("sphere-nlp reproduce: error: panel(s) %s not certified" % ", ".join(failed), file=sys.stderr)
-            return 1
         return 0
 
-    return run_subcommand(parser, argv, body, check=check,
-                          interrupted=lambda args: "the files done so far are in %s" % args.out)
+    return run_subcommand(parser, argv, body, check=check, interrupted="nothing written")

@@ -479,7 +479,7 @@ def morph_main(argv=None):
         args.notes, _ = _check_maps(args, (args.a, args.sphere_a), (args.b, args.sphere_b))
 
     def body(args, say):
-        from .mesh_io import output_transaction, write_mesh
+        from .mesh_io import created_folder, output_transaction, write_mesh
 
         for note in args.notes:
             say(note)
@@ -490,20 +490,10 @@ def morph_main(argv=None):
                 "it so: the frames grow or shrink as much as they change shape" % ratio)
         frames = morph_frames(A, B, args.frames, R, fit=args.fit)
         out = Path(args.out)
-        created = not out.exists()
-        out.mkdir(parents=True, exist_ok=True)
-        try:
-            with output_transaction():          # every frame and the strip, or none
-                for name, V in zip(morph_frame_names(len(frames)), frames):
-                    write_mesh(out / name, V, A[2])
-                write_strip(out / "strip.png", frames, A[2])
-        except BaseException:
-            if created:
-                try:
-                    out.rmdir()                 # the folder this run made, empty again
-                except OSError:
-                    pass
-            raise
+        with created_folder(out), output_transaction():       # every frame and the strip, or none
+            for name, V in zip(morph_frame_names(len(frames)), frames):
+                write_mesh(out / name, V, A[2])
+            write_strip(out / "strip.png", frames, A[2])
         say("wrote %d frames and strip.png to %s" % (len(frames), out))
         return 0
 

@@ -128,13 +128,16 @@ def _place_by_angle(pu, pv, angle_at_u, chord_uw):
     Works with differences from pu, never with dot products close to 1, so tiny triangles keep
     their relative accuracy (intersecting spheres does not: 1 - (pu.pv)^2 cancels; on the knight's
     equal-angles map, with excesses of 2e-13, that walk flipped 22 triangles).
-    Where pu and pv coincide in double precision (an edge shorter than its endpoints' rounding)
-    there is no direction toward v: w is NaN, and the walk's map fails its certificate.
     """
     d = pv - pu
     toward_v = d - np.einsum("ij,ij->i", d, pu)[:, None] * pu       # tangent at pu toward v
-    with np.errstate(invalid="ignore", divide="ignore"):
-        toward_v /= np.linalg.norm(toward_v, axis=1, keepdims=True)
+    length = np.linalg.norm(toward_v, axis=1, keepdims=True)
+    # u and v placed on one point in double precision (a collapsed edge) give no direction: any
+    # tangent at pu will do, rather than 0 / 0 making w, and every vertex placed from it, NaN.
+    collapsed = length[:, 0] == 0
+    if collapsed.any():
+        toward_v[collapsed], length[collapsed] = tangent_bases(pu[collapsed])[:, :, 0], 1.0
+    toward_v /= length
     left = np.cross(pu, toward_v)
     half = np.clip(chord_uw / 2, 0.0, 1.0)
     arc = 2 * np.arcsin(half)
@@ -379,16 +382,22 @@ def angle_gradients(positions, faces):
     b, c the next ones, the angle is the azimuth of c minus that of b around a, so
     d/db = -(a x b)/|a x b|^2, d/dc = (a x c)/|a x c|^2, and d/da follows from invariance under
     rotations: (a.b)(a x b)/|a x b|^2 - (a.c)(a x c)/|a x c|^2.
+
+    A corner whose vertex coincides with a neighbour in double precision (a triangle the walk
+    collapsed to a point: a x b = 0) has no defined azimuth, so no gradient: its terms are zero,
+    not the NaN of 0 / 0 that would spread through the normal matrix.
     """
     P = positions[faces]
     a, b, c = P, np.roll(P, -1, axis=1), np.roll(P, -2, axis=1)
     ab, ac = np.cross(a, b), np.cross(a, c)
     ab2 = np.einsum("tjk,tjk->tj", ab, ab)[..., None]
     ac2 = np.einsum("tjk,tjk->tj", ac, ac)[..., None]
-    g_b = -ab / ab2
-    g_c = ac / ac2
-    g_a = (np.einsum("tjk,tjk->tj", a, b)[..., None] * ab / ab2
-           - np.einsum("tjk,tjk->tj", a, c)[..., None] * ac / ac2)
+    ab_scaled = np.divide(ab, ab2, out=np.zeros_like(ab), where=ab2 > 0)        # (a x b)/|a x b|^2
+    ac_scaled = np.divide(ac, ac2, out=np.zeros_like(ac), where=ac2 > 0)
+    g_b = -ab_scaled
+    g_c = ac_scaled
+    g_a = (np.einsum("tjk,tjk->tj", a, b)[..., None] * ab_scaled
+           - np.einsum("tjk,tjk->tj", a, c)[..., None] * ac_scaled)
     G = np.empty(P.shape[:2] + (3, 3))
     j = np.arange(3)
     G[:, j, j] = g_a

@@ -104,25 +104,36 @@ def test_compare_records_a_failed_solve_as_a_row(tmp_path):
     assert row["valid"] is False and "failed" in row["status"]
 
 
-def test_compare_rejects_unknown_methods_before_running_and_skips_bad_meshes(tmp_path):
+def test_compare_checks_every_mesh_and_method_before_running_any(tmp_path):
     out = tmp_path / "cmp"
     p = run("compare", MODELS / "cylinder.off", "--out", out, "--methods", "conformal,nonsense")
     assert p.returncode == 2 and "unknown method 'nonsense'" in p.stderr and not out.exists()
-    # A bad mesh is reported up front and gets a row; the good one still runs; exit 2 at the end.
+    # A bad mesh after a good one: refused before the good one is solved (no progress line, no
+    # row, no folder), so exit 2 means that nothing ran.
     garbage = tmp_path / "garbage.off"
     garbage.write_text("OFF\n4 4 0\n0 0 0\n")
-    p = run("compare", garbage, MODELS / "cylinder.off", "--out", out, "--methods", "conformal")
-    assert p.returncode == 2 and "Traceback" not in p.stderr
-    lines = p.stderr.splitlines()
-    assert "skipping" in lines[0] and "garbage.off" in lines[0]         # before any progress line
-    assert lines[-1].startswith("sphere-nlp compare: error: ") and "garbage.off" in lines[-1]
-    rows = json.loads((out / "compare.json").read_text())
-    assert [(r["mesh"], r["method"], r["valid"]) for r in rows] == [("garbage.off", "-", False),
-                                                                   ("cylinder.off", "conformal", True)]
-    assert rows[0]["status"].startswith("rejected: ") and "truncated" in rows[0]["status"]
+    p = run("compare", MODELS / "cylinder.off", garbage, MODELS / "cylinder.off", "--out", out,
+            "--methods", "sphere_nlp:original-angles")
+    assert p.returncode == 2
+    assert p.stderr.splitlines() == ["sphere-nlp compare: error: cannot read %s: truncated (header promises 4 "
+                                     "vertices and 4 faces, found 1 and 0)" % garbage]
+    assert not out.exists()
+    p = run("compare", garbage, tmp_path / "missing.off", "--out", out)
+    assert p.returncode == 2 and "(and 1 more mesh(es) rejected)" in p.stderr and not out.exists()
     # Nothing to run at all: the error, exit 2, nothing written.
     p = run("compare", tmp_path / "missing.off", "--out", tmp_path / "none")
     assert p.returncode == 2 and "missing.off" in p.stderr and not (tmp_path / "none").exists()
+
+
+def test_compare_from_python_gives_a_rejected_mesh_a_row_and_runs_the_others(tmp_path):
+    from sphere_nlp.compare import compare
+
+    garbage = tmp_path / "garbage.off"
+    garbage.write_text("OFF\n4 4 0\n0 0 0\n")
+    rows = compare([garbage, MODELS / "cylinder.off"], tmp_path / "cmp", methods=["conformal"])
+    assert [(r["mesh"], r["method"], r["valid"]) for r in rows] == [("garbage.off", "-", False),
+                                                                   ("cylinder.off", "conformal", True)]
+    assert rows[0]["status"].startswith("rejected: ") and "truncated" in rows[0]["status"]
 
 
 def test_compare_defaults_to_a_few_fast_methods_and_saves_certified_maps(tmp_path):

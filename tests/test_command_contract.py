@@ -25,6 +25,7 @@ import pytest
 
 import meshgen
 from conftest import MODELS, shared_mesh
+from sphere_nlp import errors
 from sphere_nlp.certify import certify
 from sphere_nlp.cli import main
 from sphere_nlp.commands import SUBCOMMANDS
@@ -286,6 +287,59 @@ def test_view_takes_a_negative_azimuth_as_its_own_argument(tmp_path, capsys):
     assert "expected AZIMUTH,ELEVATION" in one_line(capsys.readouterr().err, "sphere-nlp: error:")
 
 
+@pytest.mark.parametrize("option,fragment", [
+    (["--view", "nan,20"], "must be finite numbers of degrees, not 'nan,20'"),
+    (["--view=inf,20"], "must be finite numbers of degrees, not 'inf,20'"),
+    (["--view=-60,inf"], "must be finite numbers of degrees"),
+    (["--view", "10,95"], "the elevation must be between -90 and 90 degrees, not 95"),
+    (["--corner-floor", "nan"], "--corner-floor must be a number in [0, 1)"),
+    (["--area-floor", "1"], "--area-floor must be a number in [0, 1)"),
+    (["--area-floor=-0.5"], "--area-floor must be a number in [0, 1)"),
+    (["--angle-weight", "inf"], "--angle-weight must be a finite number"),
+    (["--area-weight", "-1"], "--area-weight must be a finite number >= 0"),
+    (["--max-time", "nan"], "--max-time must be a finite number"),
+    (["--max-iter", "0"], "--max-iter must be >= 1"),
+    (["--up", "w"], "argument --up"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
+def test_every_numeric_option_is_checked_before_solving(option, fragment, tmp_path, capsys):
+    outputs = ["-o", str(tmp_path / "s.off"), "--png", str(tmp_path / "p.png")]
+    started = time.perf_counter()
+    assert main([str(MODELS / "cylinder.off"), *outputs, *option, "-q"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "\n" not in line and line.startswith("sphere-nlp: error: ") and fragment in line, line
+    assert time.perf_counter() - started < 5 and os.listdir(tmp_path) == []
+
+
+def test_batch_max_time_must_be_finite(tmp_path, capsys):
+    assert main(["batch", str(MODELS / "cylinder.off"), "--out", str(tmp_path / "o"), "--max-time", "inf"]) == 2
+    assert "--max-time must be a finite number of seconds > 0, not inf" in capsys.readouterr().err
+    assert os.listdir(tmp_path) == []
+
+
+# A run whose picture step meets a warning, as numpy's RuntimeWarnings or a library's notes reach it.
+WARNING_PROGRAM = """
+import runpy, sys, warnings
+from sphere_nlp import picture
+render_png = picture.render_png
+def warned(*args, **kwargs):
+    warnings.warn("invalid value encountered in divide", RuntimeWarning)
+    return render_png(*args, **kwargs)
+picture.render_png = warned
+sys.argv = ["sphere-nlp"] + sys.argv[1:]
+runpy.run_module("sphere_nlp", run_name="__main__")
+"""
+
+
+def test_quiet_silences_warnings_too(tmp_path):
+    for quiet in ([], ["-q"]):
+        p = subprocess.run([sys.executable, "-c", WARNING_PROGRAM, str(MODELS / "cylinder.off"), "-o",
+                            str(tmp_path / "s.off"), "--png", str(tmp_path / "p.png"), *quiet],
+                           capture_output=True, text=True, env=env(), cwd=tmp_path)
+        assert p.returncode == 0, p.stderr
+        assert ("RuntimeWarning" in p.stderr) == (not quiet), p.stderr
+    assert p.stderr == ""                                   # -q: errors only, and there was none
+
+
 @pytest.fixture
 def meshes(tmp_path):
     S, F = icosphere(2)
@@ -418,3 +472,35 @@ def test_max_time_counts_from_the_start_of_the_process(tmp_path):
     line = p.stderr.strip().splitlines()[-1]
     assert "Maximum_WallTime_Exceeded" in line and "before IPOPT's first iteration" in line
     assert line.endswith("; nothing written") and not (tmp_path / "s.off").exists()
+
+
+@pytest.mark.parametrize("raised,line", [
+    (lambda: errors.SolveError("the angle solve failed (IPOPT status Invalid_Number_Detected after 0 "
+                               "iterations)"),
+     "sphere-nlp resample: error: the angle solve failed (IPOPT status Invalid_Number_Detected after 0 "
+     "iterations); nothing written"),
+    (lambda: errors.CertificateError("the sphere failed its certificate: 2 flipped triangles"),
+     "sphere-nlp resample: error: the sphere failed its certificate: 2 flipped triangles; nothing written"),
+    (MemoryError, "sphere-nlp resample: error: out of memory; nothing written"),
+    (lambda: KeyError("x"), "sphere-nlp resample: internal error: KeyError: 'x'; nothing written"),
+])
+def test_every_exit_1_line_of_a_subcommand_says_what_was_written(raised, line, capsys):
+    from sphere_nlp.commands import run_subcommand, subcommand_parser
+
+    def body(args, say):
+        raise raised()
+
+    status = run_subcommand(subcommand_parser("resample", "test"), [], body, interrupted="nothing written")
+    assert status == 1
+    assert capsys.readouterr().err.splitlines() == [line]
+
+
+def test_a_failed_batch_says_what_it_wrote_even_when_quiet(tmp_path, capsys):
+    write_mesh(tmp_path / "torus.off", *meshgen.torus())
+    write_mesh(tmp_path / "ball.off", *icosphere(1))
+    out = tmp_path / "out"
+    assert main(["batch", str(tmp_path / "torus.off"), str(tmp_path / "ball.off"), "--out", str(out), "-q"]) == 1
+    assert capsys.readouterr().err.splitlines() == [
+        "sphere-nlp batch: error: 1 of 2 mesh(es) failed (reasons in %s); wrote the 1 certified (0 already "
+        "done) and the summary to %s" % (out / "summary.md", out)]
+    assert (out / "ball.sphere.off").exists() and not (out / "torus.sphere.off").exists()

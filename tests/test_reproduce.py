@@ -1,9 +1,12 @@
 """``python -m sphere_nlp reproduce fig3``: outputs, certificates, and the paper's four findings."""
 
 import json
+import os
+import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +16,8 @@ from sphere_nlp.certify import certify, spherical_angles
 from sphere_nlp.mesh_io import load_mesh
 from sphere_nlp.reproduce import BLACK_TRIANGLE, SIDE_TRIANGLES
 from sphere_nlp.shapes import cylinder
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -134,3 +139,20 @@ def test_reproduce_unknown_figure_is_usage_error(tmp_path):
                        capture_output=True, text=True)
     assert p.returncode == 2 and "invalid choice" in p.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupted_reproduce_writes_nothing(signum, tmp_path):
+    # Panels (a)-(c) are done when (c)'s line comes: their files are staged, none in place yet.
+    out = tmp_path / "r" / "fig"
+    process = subprocess.Popen([sys.executable, "-m", "sphere_nlp", "reproduce", "fig3", "--out", str(out)],
+                               stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    for line in process.stderr:
+        if "(c) equal angles" in line:
+            break
+    process.send_signal(signum)
+    rest = process.stderr.read()
+    assert process.wait(timeout=60) == 128 + signum, rest
+    assert rest.strip().splitlines()[-1] == "sphere-nlp reproduce: interrupted; nothing written (%s)" % (
+        signal.Signals(signum).name)
+    assert os.listdir(tmp_path) == []                      # not even the folders it made
