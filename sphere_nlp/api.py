@@ -550,8 +550,9 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         iteration, the unfolding and the certificate (and with ``on_limit="project"`` the
         projection, which may take a fifth of ``max_time`` plus 5 s more). The area modes have a
         default budget counted in work, not seconds (:func:`sphere_nlp.polish.default_budget`:
-        400 steps of the authalic descent, 30 IPOPT iterations of the polish per run), so that
-        their map does not depend on the machine's speed or load; ``max_time`` replaces it,
+        400 steps of the authalic descent, then up to 30 IPOPT iterations of the polish per run,
+        fewer on larger meshes), so that their map does not depend on the machine's speed or
+        load; ``max_time`` replaces it,
         ``math.inf`` runs both stages to the end.
     on_limit : {"fail", "project"}
         When the main (margin) stage reaches ``max_iter`` or ``max_time``: fail (default: SolveError
@@ -691,7 +692,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
             raise errors.UsageError("start='authalic' is the area modes' route and needs the log-chord formulation")
         # The run's own max_time bounds everything already (the decorator's deadline); without
         # one, the area modes' default budget, counted in work; math.inf, none at all.
-        budget = default_budget(used) if max_time is None and not unlimited else None
+        budget = default_budget(connectivity.n_vertices, used) if max_time is None and not unlimited else None
         lap("build", "solve")
         route = authalic_route(connectivity, prepared.normalised_vertices, targets, budget=budget,
                                settings=settings, progress=progress, ipopt_options=ipopt_options,

@@ -23,7 +23,7 @@ Examples
 >>> from sphere_nlp.targets import make_targets
 >>> V, F = cylinder()
 >>> C = build_connectivity(F, len(V))
->>> route = authalic_route(C, V, make_targets("original-areas", V, F, C.vertex_degree), budget=20)
+>>> route = authalic_route(C, V, make_targets("original-areas", V, F, C.vertex_degree), budget=default_budget(len(V)))
 >>> route.record["answer"] in ("polished", "authalic"), route.solution.success
 (True, True)
 >>> route.record["mean_abs_log_area"] <= route.record["authalic"]["mean_abs_log_area"]
@@ -46,17 +46,23 @@ from .starts import angles_and_excess, starting_positions
 from .unfold import sphere_positions
 
 
-def default_budget(settings=DEFAULT_SETTINGS):
-    """The area modes' default budget, counted in work: {"descent_steps", "polish_iterations"}.
+def default_budget(n_vertices, settings=DEFAULT_SETTINGS):
+    """The area modes' default budget for a mesh of ``n_vertices``, counted in work:
+    {"descent_steps", "polish_iterations"}.
 
     Steps and iterations, not seconds, so that a run's map depends on its input and options only,
     never on the machine or what else it is running (a wall-clock budget gave bunny.off a mean
-    |log area ratio| of 0.006 alone and 0.111 beside two busy processes).
+    |log area ratio| of 0.006 alone and 0.111 beside two busy processes). A descent step costs
+    about the same per vertex at every size, so their number is fixed; an IPOPT iteration of the
+    polish costs more per vertex on a larger mesh, so the polish gets ``polish_work / n``
+    iterations, at most ``polish_iterations``, and none below ``min_polish_iterations``.
 
-    >>> sorted(default_budget())
-    ['descent_steps', 'polish_iterations']
+    >>> default_budget(5000), default_budget(50000)
+    ({'descent_steps': 400, 'polish_iterations': 30}, {'descent_steps': 400, 'polish_iterations': 0})
     """
-    return {"descent_steps": int(settings.authalic_steps), "polish_iterations": int(settings.polish_iterations)}
+    iterations = min(int(settings.polish_iterations), int(settings.polish_work // max(n_vertices, 1)))
+    return {"descent_steps": int(settings.authalic_steps),
+            "polish_iterations": iterations if iterations >= settings.min_polish_iterations else 0}
 
 
 def no_worse_band(excess, target_excess, slack):
@@ -111,13 +117,17 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
     authalic_objective = objective_value(targets, authalic_angles, authalic_excess)
     record = {"start": start_kind,
               "authalic": {"seconds": round(stage.seconds, 3), "sem_seconds": round(stage.sem_seconds, 3),
-                           "descent_steps": stage.steps, "objective": authalic_objective,
+                           "descent_steps": stage.steps, "descent_stopped": stage.trace.stopped,
+                           "objective": authalic_objective,
                            "mean_abs_log_area": stage.mean_abs_log_area,
                            "start_mean_abs_log_area": stage.start_mean_abs_log_area,
                            "sem_mean_abs_log_area": stage.sem_mean_abs_log_area}}
     polish_began = time.perf_counter()
     polished = None
-    if not interrupts.deadline_passed():
+    no_polish = "no time left for the polish"
+    if budget is not None and budget["polish_iterations"] == 0:
+        no_polish = "the budget leaves no iterations to refine a mesh this size"
+    elif not interrupts.deadline_passed():
         if on_stage is not None:
             on_stage("polish")
         band = no_worse_band(authalic_excess, targets.excess, settings.polish_slack)
@@ -130,7 +140,7 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
                                 on_limit="project", excess_band=band, progress=progress,
                                 settings=settings.replace(area_walk_distance=math.inf),
                                 max_time=None if math.isinf(left) else left, **solve_keywords)
-    answer, reason, positions, unfold_info = "authalic", "no time left for the polish", stage.positions, {}
+    answer, reason, positions, unfold_info = "authalic", no_polish, stage.positions, {}
     if polished is not None:
         reason = _rejection(polished, targets, stage.mean_abs_log_area, authalic_objective)
         if reason is None:
@@ -138,7 +148,7 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
             error = mean_abs_log_area(candidate, faces, targets.excess)
             if not certify(candidate, faces).valid:
                 reason = "the polished map failed its certificate"
-            elif error > stage.mean_abs_log_area:
+            elif error > stage.mean_abs_log_area * (1 + 1e-9):
                 reason = "the polish raised the mean |log area ratio|"
             else:
                 answer, reason, positions, unfold_info = "polished", None, candidate, info
@@ -172,7 +182,7 @@ def _rejection(polished, targets, authalic_error, authalic_objective):
     if polished.objective > authalic_objective:
         return "the polish did not lower objective (9)"
     error = float(np.mean(np.abs(np.log(polished.excess / targets.excess))))
-    if error > authalic_error:
+    if error > authalic_error * (1 + 1e-9):        # more than the unfolding's rounding
         return "the polish raised the mean |log area ratio|"
     return None
 
@@ -181,24 +191,50 @@ def _rejection(polished, targets, authalic_error, authalic_objective):
 # the solver's words, for --report).
 _PLAIN_REASONS = {
     "no time left for the polish": "no time was left to refine it",
+    "the budget leaves no iterations to refine a mesh this size":
+        "the default budget does not refine a mesh this size (--max-time S or none does)",
     "the budget ended before the polish's iterate was projected onto the constraints":
-        "the time budget ended before its refinement was done",
+        "the time limit ended before its refinement was done",
     "the polished map failed its certificate": "the refined map failed its certificate",
     "the polish raised the mean |log area ratio|": "refining it would have made the areas worse",
     "the polish did not lower objective (9)": "refining it did not improve it",
 }
 
 
+# The mean |log area ratio| the area modes aim for; a run line above it says why and what would help.
+AREA_AIM = 0.03
+
+# Why the authalic stage's descent stopped (DescentTrace.stopped), in the run line's words.
+_DESCENT_ENDS = {
+    "steps": "the area-keeping stage used its budget of steps (--max-time none runs it until it stalls)",
+    "time": "--max-time ended the area-keeping stage (a longer --max-time gives it more)",
+    "stalled": "the area-keeping stage stalled there",
+    "no step lowers the energy": "the area-keeping stage found no step that lowers its error",
+}
+
+
 def describe(record):
     """One clause for the run's line, in the map's terms: the first area-keeping map as it is, or
-    refined (to the best map, or as far as the time budget allowed), and why. The solver's own
-    account (objective (9), IPOPT's status and iterations) is the record's, in ``--report``."""
+    refined (to the best map, or as far as the budget allowed), and why; above :data:`AREA_AIM`, why
+    the areas are not nearer and what would bring them nearer. The solver's own account
+    (objective (9), IPOPT's status and iterations) is the record's, in ``--report``."""
     authalic = record["authalic"]
-    if record["answer"] == "polished":
-        if record["polish"]["converged"]:
-            return "the area-keeping map refined to the best map the solver finds"
-        return ("the area-keeping map refined as far as the time budget allowed (mean |log area ratio| "
-                "%.3g before; --max-time none refines it to the end)" % authalic["mean_abs_log_area"])
-    reason = record["reason"]
-    plain = _PLAIN_REASONS.get(reason, "its refinement failed" if reason.startswith("the polish failed") else reason)
-    return "the first area-keeping map, not refined: %s (--report has the details)" % plain
+    stopped = authalic.get("descent_stopped", "")
+    if authalic["descent_steps"] == 0 and authalic["mean_abs_log_area"] >= authalic["start_mean_abs_log_area"]:
+        clause = ("the conformal start as it is: the %s before the area-keeping stage could change it"
+                  % ("time limit ended" if stopped == "time" else "start's smallest triangles are too small for "
+                     "double precision" if stopped.startswith("a triangle") else "area-keeping stage stopped"))
+    elif record["answer"] == "polished":
+        clause = ("the area-keeping map refined to the best map the solver finds" if record["polish"]["converged"]
+                  else "the area-keeping map refined as far as the budget allowed (mean |log area ratio| %.3g "
+                  "before; --max-time none refines it to the end)" % authalic["mean_abs_log_area"])
+    else:
+        reason = record["reason"]
+        plain = _PLAIN_REASONS.get(reason, "its refinement failed" if reason.startswith("the polish failed")
+                                   else reason)
+        clause = "the first area-keeping map, not refined: %s (--report has the details)" % plain
+    if record["mean_abs_log_area"] > AREA_AIM and authalic["descent_steps"]:
+        clause += "; above the %.2g aimed for: %s" % (
+            AREA_AIM, _DESCENT_ENDS.get(stopped, "the start's smallest triangles are too small for double "
+                                        "precision (thin limbs), which the area-keeping stage cannot undo"))
+    return clause

@@ -217,12 +217,13 @@ class SolverSettings:
     start_gauge : {"excess", "area"}
         Mobius normalisation of the angle modes' start (:func:`sphere_nlp.starts.starting_positions`);
         the area modes keep "area" (their continuation sets the scale).
-    authalic_steps, polish_iterations : int
-        Area modes: the run's default budget (:mod:`sphere_nlp.polish`), counted in work so that
-        the same input gives the same map on any machine at any load: at most ``authalic_steps``
-        steps of the authalic descent, then at most ``polish_iterations`` IPOPT iterations of the
-        NLP's polish in each of its runs (its iterate is then projected onto the constraints).
-        ``max_time`` replaces it by a wall-clock limit.
+    authalic_steps, polish_iterations, polish_work, min_polish_iterations : int
+        Area modes: the run's default budget (:func:`sphere_nlp.polish.default_budget`), counted in
+        work so that the same input gives the same map on any machine at any load: at most
+        ``authalic_steps`` steps of the authalic descent, then ``polish_work / n`` IPOPT
+        iterations of the NLP's polish in each of its runs for n vertices, at most
+        ``polish_iterations``, none below ``min_polish_iterations`` (its iterate is then projected
+        onto the constraints). ``max_time`` replaces it by a wall-clock limit.
     authalic_share : float
         With ``max_time``: the fraction of the time left that the authalic stage may take; the
         polish has the rest.
@@ -293,9 +294,11 @@ class SolverSettings:
     start_gauge: str = "excess"
     authalic_steps: int = 400
     polish_iterations: int = 30
+    polish_work: int = 200_000
+    min_polish_iterations: int = 8
     authalic_share: float = 0.75
     authalic_stall: float = 1e-3
-    polish_slack: float = 1e-3
+    polish_slack: float = 0.0
     on_run: object = None
     on_iterate: object = None
     modify_hessian: object = None

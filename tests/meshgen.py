@@ -259,6 +259,9 @@ THIN_LIMBED_BODIES = {
     "27k": dict(n_limbs=8, radius=0.1, length_ratios=(20, 45), n_claws=6, claw_length=3.0),
     "31k": dict(n_limbs=8, radius=0.1, length_ratios=(20, 45), n_claws=6, claw_length=3.0, tail_ratio=60),
     "50k": dict(n_limbs=8, radius=0.14, length_ratios=(20, 45), n_claws=6, claw_length=3.0, tail_ratio=60)}
+# Many thin short protrusions beside a few thick limbs, as on a scanned person (fingers and toes
+# beside arms and legs): 4 of radius 0.25 and 5-8 radii, 16 of radius 0.06 and 9-25 radii.
+FINGERED_BODY = dict(n_limbs=20, radius=[0.25] * 4 + [0.06] * 16, length_ratios=(5, 25), n_claws=0)
 # A small body whose conformal map collapses tip triangles to zero area in the plane (1.8k vertices).
 COLLAPSING_LIMBS = dict(n_limbs=4, radius=0.1, length_ratios=(45, 60), subdivisions=3, n_claws=4)
 
@@ -268,7 +271,8 @@ def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions
     """A round body with ``n_limbs`` long limbs, some ending in claws: the shape of a scanned animal.
 
     The body is an icosphere of radius 1 (``subdivisions``). Each limb replaces the cap of the
-    body within ``radius`` (as a chord: the limb's radius) of a direction spread over the sphere (a
+    body within ``radius`` (as a chord: the limb's radius; one number, or one per limb and tail)
+    of a direction spread over the sphere (a
     Fibonacci lattice) by a tube of the cap's rim, extruded straight out in rings one edge length
     apart, closed by the cap itself moved to its end (a rounded tip of the body's own triangles).
     The limbs' lengths over their radius run evenly over ``length_ratios``; each ring's
@@ -292,9 +296,10 @@ def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions
     ratios = np.r_[np.linspace(length_ratios[0], length_ratios[-1], n_limbs), [tail_ratio] * n_tails]
     tapers = np.r_[np.full(n_limbs, taper), [tail_taper] * n_tails]
     edge = np.sqrt(4 * (4 * np.pi / len(F)) / np.sqrt(3))           # the body's mean edge length
-    cos_cap = np.sqrt(1 - radius ** 2)
+    radii = np.broadcast_to(np.asarray(radius, float), (n_limbs + n_tails,))
     faces = [F]
-    for limb, (d, ratio, limb_taper) in enumerate(zip(directions, ratios, tapers)):
+    for limb, (d, ratio, limb_taper, radius) in enumerate(zip(directions, ratios, tapers, radii)):
+        cos_cap = np.sqrt(1 - radius ** 2)
         P = np.asarray(V)
         body = faces[0]
         inside = P @ d > cos_cap

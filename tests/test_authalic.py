@@ -102,7 +102,7 @@ def test_no_worse_band_keeps_each_triangle_no_further_from_its_target():
 def test_route_answer_is_never_worse_than_the_authalic_map():
     V, F = ellipsoid(3)
     C, _, targets = _problem(V, F)
-    route = polish.authalic_route(C, V, targets, budget=polish.default_budget())
+    route = polish.authalic_route(C, V, targets, budget=polish.default_budget(len(V)))
     record = route.record
     assert certify(route.positions, F).valid
     assert record["mean_abs_log_area"] <= record["authalic"]["mean_abs_log_area"]
@@ -128,11 +128,12 @@ def test_route_keeps_the_authalic_map_when_the_polish_would_raise_the_area_error
 
 
 def test_default_budget_is_counted_in_steps_and_iterations():
-    settings = SolverSettings(authalic_steps=7, polish_iterations=3)
-    assert polish.default_budget(settings) == {"descent_steps": 7, "polish_iterations": 3}
+    settings = SolverSettings(authalic_steps=7, polish_iterations=3, min_polish_iterations=1)
+    assert polish.default_budget(1000, settings) == {"descent_steps": 7, "polish_iterations": 3}
+    assert polish.default_budget(10 ** 6, settings)["polish_iterations"] == 0
     V, F = ellipsoid(3)
     C, _, targets = _problem(V, F)
-    route = polish.authalic_route(C, V, targets, budget=polish.default_budget(settings), settings=settings)
+    route = polish.authalic_route(C, V, targets, budget=polish.default_budget(len(V), settings), settings=settings)
     assert route.record["authalic"]["descent_steps"] <= 7
     assert all(stage["iterations"] <= 3 for stage in route.solution.stages if stage["name"] != "projection")
     assert certify(route.positions, F).valid
@@ -171,7 +172,7 @@ def test_authalic_stage_on_collapsed_triangles_is_quiet_and_certified(capfd):
 def test_area_modes_default_to_the_route_with_its_budget():
     result = parameterize(str(MODELS / "cylinder.off"), "equal-areas")
     assert result.success and result.start == "authalic"
-    assert result.area_route["budget"] == polish.default_budget()
+    assert result.area_route["budget"] == polish.default_budget(len(result.vertices))
     # equal-areas: the answer's areas are at least as even as the authalic map's.
     assert result.area_route["mean_abs_log_area"] <= result.area_route["authalic"]["mean_abs_log_area"]
 
@@ -199,6 +200,7 @@ def test_cli_max_time_none_and_the_run_line_names_the_answer(tmp_path):
     assert run.returncode == 0, run.stderr
     last = [line for line in run.stderr.splitlines() if line.startswith("wrote")][-1]
     # In the map's terms: the solver's objective and statuses are the report's.
-    assert re.search(r"; the (area-keeping map refined to the best map|first area-keeping map, not refined: .*)$",
+    assert re.search(r"; the (area-keeping map refined to the best map the solver finds"
+                     r"|first area-keeping map, not refined: .*)$",
                      last) and "objective" not in last and "IPOPT" not in last
     assert out.is_file()
