@@ -15,7 +15,6 @@ trimesh load afterwards.
 import argparse
 import math
 import os
-import re
 import signal
 import sys
 import time
@@ -23,8 +22,9 @@ import traceback
 from pathlib import Path
 
 from . import __version__, errors, interrupts
-from .commands import (PROG, SUBCOMMANDS, SafeStream, UsageParser, check_output_paths as _check_paths,
-                       subcommand_lines, subcommand_main, unknown_command, warnings_silenced)
+from .commands import (PROG, SUBCOMMANDS, UP_CHOICES, SafeStream, UsageParser, check_output_paths as _check_paths,
+                       join_negative_values, subcommand_lines, subcommand_main, unknown_command, view_argument,
+                       warnings_silenced)
 
 # SolverSettings' area_floor, repeated so that --help need not import numpy (tests/test_ux.py
 # checks that the two agree).
@@ -61,10 +61,10 @@ def build_parser():
     out.add_argument("--png-measure", choices=("area", "angle"),
                      help="colouring of the picture: log area ratio or angle distortion (default: the "
                           "one the target mode does not optimise)")
-    out.add_argument("--view", metavar="AZ,EL", type=_view,
+    out.add_argument("--view", metavar="AZ,EL", type=view_argument,
                      help="camera azimuth and elevation of the picture, degrees, e.g. --view -60,20 "
                           "(default: the side with the most projected area)")
-    out.add_argument("--up", choices=("x", "y", "z", "+x", "+y", "+z", "-x", "-y", "-z"), metavar="AXIS",
+    out.add_argument("--up", choices=UP_CHOICES, metavar="AXIS",
                      help="the input's up axis in the picture: x, y, z, or --up=-z (default: detected)")
     out.add_argument("--textured-input", metavar="OUT.obj",
                      help="the input mesh with the sphere's texture coordinates, to paint or texture")
@@ -247,25 +247,6 @@ def floor_note(result, corner_floor, area_floor=None):
             "lower bound that keeps triangles usable)")
 
 
-def _view(text):
-    """``AZ,EL`` in degrees, for --view: a finite azimuth and an elevation in [-90, 90] (a NaN
-    camera draws blank panels).
-
-    >>> _view("-60,20")
-    (-60.0, 20.0)
-    """
-    try:
-        azimuth, elevation = (float(word) for word in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError("expected AZIMUTH,ELEVATION in degrees, e.g. -60,20; got %r" % text)
-    if not (math.isfinite(azimuth) and math.isfinite(elevation)):
-        raise argparse.ArgumentTypeError("the azimuth and elevation must be finite numbers of degrees, "
-                                         "not %r" % text)
-    if not -90 <= elevation <= 90:
-        raise argparse.ArgumentTypeError("the elevation must be between -90 and 90 degrees, not %g" % elevation)
-    return azimuth, elevation
-
-
 def _check_suffix(path, suffix, what):
     if path and Path(path).suffix.lower() != suffix:
         raise errors.UsageError("cannot write %s: %s must end in %s" % (path, what, suffix))
@@ -295,29 +276,6 @@ def check_output_paths(input_path, outputs):
     """Raise UsageError unless every output can be written, before anything is solved
     (:func:`sphere_nlp.commands.check_output_paths` with the input mesh as the one input)."""
     _check_paths([("the input file", input_path)], outputs)
-
-
-# Options whose value may start with "-" (a negative azimuth): argparse would take "-60,20" for an
-# option, so "--view -60,20" becomes "--view=-60,20" before parsing.
-NEGATIVE_VALUE_OPTIONS = ("--view",)
-_NUMBERS = re.compile(r"-[0-9.]+(e[-+]?[0-9]+)?(,[-+]?[0-9.]+(e[-+]?[0-9]+)?)*", re.I)
-
-
-def join_negative_values(argv):
-    """``argv`` with ``--view -60,20`` written ``--view=-60,20`` (see NEGATIVE_VALUE_OPTIONS).
-
-    >>> join_negative_values(["m.off", "--view", "-60,20", "-q"])
-    ['m.off', '--view=-60,20', '-q']
-    """
-    joined, k = [], 0
-    while k < len(argv):
-        if argv[k] in NEGATIVE_VALUE_OPTIONS and k + 1 < len(argv) and _NUMBERS.fullmatch(argv[k + 1]):
-            joined.append("%s=%s" % (argv[k], argv[k + 1]))
-            k += 2
-        else:
-            joined.append(argv[k])
-            k += 1
-    return joined
 
 
 def _seconds(text):

@@ -534,3 +534,110 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
         fig.savefig(out, format="png")
     return {"colour_limits": (low, high), "colour_ticks": ticks, "clipped_share": clipped,
             "up": up_text, "view": view, "drawn": drawn, "checker_pieces": len(polygons)}
+
+
+# A map whose triangles are on average within this |log area ratio| of their share of the sphere
+# keeps the areas (an area mode's map: about 0.01-0.03), so its picture shows the angles it pays.
+AREA_KEPT_MEAN_ABS_LOG = 0.05
+
+
+def measure_for_map(mesh_vertices, sphere_vertices, faces):
+    """The measure a picture of a map of unknown mode shows: "angle" when the map keeps the areas
+    (mean |log area ratio| below :data:`AREA_KEPT_MEAN_ABS_LOG`), else "area" (what a map in an
+    angle mode pays), as :func:`default_measure` chooses from a mode.
+
+    >>> from sphere_nlp.shapes import icosphere
+    >>> V, F = icosphere(2)
+    >>> measure_for_map(V, V, F), measure_for_map(V * [1, 1, 3], V, F)
+    ('angle', 'area')
+    """
+    from .metrics import area_log_ratio, normalised_areas_3d
+
+    log_area = area_log_ratio(mesh_vertices, sphere_vertices, faces)
+    weights = normalised_areas_3d(mesh_vertices, faces)
+    finite = np.isfinite(log_area)
+    mean = (np.abs(log_area[finite]) * weights[finite]).sum() / max(weights[finite].sum(), 1e-300)
+    return "angle" if mean < AREA_KEPT_MEAN_ABS_LOG else "area"
+
+
+def picture_name(sphere_path):
+    """Where a picture of the map in ``sphere_path`` goes by default: beside it, named after it
+    without ``.sphere`` and its extension (``out/bunny.sphere.off`` -> ``out/bunny.png``,
+    ``bunny.original-areas.sphere.off`` -> ``bunny.original-areas.png``, ``cyl.obj`` -> ``cyl.png``),
+    so a picture carries the mode its sphere's name carries.
+
+    >>> str(picture_name("out/bunny.original-areas.sphere.off")), str(picture_name("cyl.obj"))
+    ('out/bunny.original-areas.png', 'cyl.png')
+    """
+    from pathlib import Path
+
+    path = Path(sphere_path)
+    stem = path.stem[:-len(".sphere")] if path.stem.endswith(".sphere") else path.stem
+    return path.with_name((stem or path.stem) + ".png")
+
+
+def main(argv=None):
+    """``sphere-nlp picture MESH SPHERE [-o OUT.png]``: redraw a map written earlier, without solving."""
+    import sys
+    from pathlib import Path
+
+    from .commands import (UP_CHOICES, check_output_paths, join_negative_values, run_subcommand,
+                           subcommand_parser, view_argument)
+    from .errors import UsageError
+
+    parser = subcommand_parser(
+        "picture",
+        description="Draw the picture of a map written earlier (MESH and its SPHERE, same faces), without "
+                    "solving: mesh and sphere coloured by distortion, and the mesh checkerboarded.",
+        epilog="example:\n  sphere-nlp bunny.off\n  sphere-nlp picture bunny.off bunny.sphere.off --up y "
+               "--view -60,20")
+    parser.add_argument("mesh", metavar="MESH", help="the mesh that was mapped")
+    parser.add_argument("sphere", metavar="SPHERE",
+                        help="its sphere (the main command's output, or any with the same vertices and faces; "
+                             "any radius, centred at the origin)")
+    parser.add_argument("-o", "--output", metavar="OUT.png",
+                        help="the picture (default: beside SPHERE, named after it: bunny.sphere.off -> bunny.png)")
+    parser.add_argument("--png-measure", "--measure", dest="measure", choices=tuple(MEASURES),
+                        help="colouring: log area ratio or angle distortion (default: angle when the map keeps "
+                             "the areas, else area)")
+    parser.add_argument("--view", metavar="AZ,EL", type=view_argument,
+                        help="camera azimuth and elevation, degrees (default: the side with the most projected area)")
+    parser.add_argument("--up", choices=UP_CHOICES, metavar="AXIS",
+                        help="the mesh's up axis: x, y, z, or --up=-z (default: detected)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+
+    def check(args):
+        from .resample import _check_inputs, checked_sphere
+
+        option = "-o" if args.output else "the default output"
+        args.output = Path(args.output) if args.output else picture_name(args.sphere)
+        _check_inputs(args.mesh, args.sphere)
+        check_output_paths([("the input mesh", args.mesh), ("the sphere", args.sphere)],
+                           [(option, args.output)])
+        if args.output.suffix.lower() != ".png":
+            raise UsageError("cannot write %s: a picture must end in .png" % args.output)
+        # The sphere is read, matched to the mesh and certified before anything is drawn.
+        args.map, args.note = checked_sphere(args.mesh, args.sphere)
+
+    def body(args, say):
+        from .mesh_io import output_transaction
+        from .metrics import distortion_summary
+
+        if args.note:
+            say(args.note)
+        X, S, F = args.map
+        X = _normalised(X)
+        measure = args.measure or measure_for_map(X, S, F)
+        summary = distortion_summary(X, S, F)
+        title = ("%s: %d vertices, mean angle distortion %.1f°, mean |log area ratio| %.3f"
+                 % (Path(args.sphere).name, len(S), summary["mean_abs_angle_diff_deg"], summary["mean_abs_log_area"]))
+        with output_transaction():
+            info = render_png(args.output, X, S, F, measure=measure, title=title, view=args.view, up=args.up)
+        low, high = info["colour_limits"]
+        say("wrote %s: coloured by %s from %g to %g; up %s%s, view azimuth %g°, elevation %g°"
+            % (args.output, MEASURES[measure][0], low, high, info["up"], " (detected)" if args.up is None else "",
+               *info["view"]))
+        return 0
+
+    return run_subcommand(parser, join_negative_values(list(sys.argv[1:] if argv is None else argv)), body,
+                          check=check, interrupted="nothing written", failed="nothing written")

@@ -259,7 +259,7 @@ def test_help_lists_every_subcommand_and_a_misspelt_one_gets_a_suggestion(capsys
     help_text = subprocess.run(command("--help"), capture_output=True, text=True, env=env()).stdout
     for name in SUBCOMMANDS:
         assert any(line.split()[:1] == [name] and len(line.split()) > 3 for line in help_text.splitlines()), name
-    assert set(SUBCOMMANDS) == {"reproduce", "compare", "batch", "resample", "transfer", "morph"}
+    assert set(SUBCOMMANDS) == {"reproduce", "compare", "batch", "resample", "transfer", "morph", "picture"}
     for argv in (["resampel", "x.off"], ["resampel"], ["bach", "meshes/", "--out", "o"]):
         assert main(argv) == 2
         line = one_line(capsys.readouterr().err, "sphere-nlp: error: unknown command")
@@ -367,6 +367,14 @@ def meshes(tmp_path):
     (["batch", "{a}", "--out", "{d}/o", "--bogus"], "unrecognized arguments: --bogus"),
     (["batch", "{a}", "{b}", "--out", "{d}", "--start", "{d}/a.sphere.off"], "would replace the --start sphere"),
     (["reproduce", "fig3", "--out", "{a}"], "it is a file, not a folder"),
+    (["picture", "{a}", "{d}/a.sphere.off", "-o", "{a}"], "-o {d}/a.off is the input mesh"),
+    (["picture", "{a}", "{d}/a.sphere.off", "-o", "{d}/a.sphere.off"], "is the sphere"),
+    (["picture", "{a}", "{d}/a.sphere.off", "-o", "{d}/p.jpg"], "a picture must end in .png"),
+    (["picture", "{a}", "{b}"], "b.off is not a sphere centred at the origin"),
+    (["picture", "{a}", "{torus}"], "torus.off is not a sphere of {d}/a.off: 60 vertices / 120 faces against 162 / 320"),
+    (["picture", "{a}", "{d}/missing.off"], "cannot read {d}/missing.off: no such file"),
+    (["picture", "{a}", "{d}/a.sphere.off", "--view", "10,95"], "the elevation must be between -90 and 90"),
+    (["picture", "{a}", "{d}/a.sphere.off", "--up", "w"], "argument --up"),
 ], ids=lambda v: v if isinstance(v, str) else " ".join(v[:1]))
 def test_subcommands_check_everything_before_solving_in_one_line(argv, fragment, meshes, capsys):
     (meshes / "a.sphere.off").write_bytes((meshes / "a.off").read_bytes())     # a --start for batch
@@ -376,7 +384,7 @@ def test_subcommands_check_everything_before_solving_in_one_line(argv, fragment,
     started = time.perf_counter()
     assert main(argv) == 2
     line = one_line(capsys.readouterr().err, "sphere-nlp %s: error: " % argv[0])
-    assert fragment in line, line
+    assert fragment.format(d=meshes) in line, line
     assert time.perf_counter() - started < 10              # nothing was solved
     assert folder_state(meshes) == before                  # nothing written, the inputs untouched
 

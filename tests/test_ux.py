@@ -376,6 +376,32 @@ def test_best_view_faces_the_broad_side_and_view_option_overrides_it(tmp_path, c
     assert status == 2 and "--view" in stderr
 
 
+def test_picture_command_redraws_a_written_map_without_solving(cylinder_result, tmp_path, capsys, monkeypatch):
+    from matplotlib.image import imread
+
+    def no_solving(*args, **kwargs):
+        raise AssertionError("picture solved a map")
+
+    sphere = tmp_path / "cylinder.sphere.off"
+    cylinder_result.write(sphere)
+    cylinder_result.write_png(tmp_path / "run.png", measure="angle", view=(-30.0, 10.0), up="x")
+    monkeypatch.setattr(sphere_nlp.api, "parameterize", no_solving)
+    status, stderr = run_cli(capsys, "picture", MODELS / "cylinder.off", sphere, "--view", "-30,10", "--up", "x",
+                             "--measure", "angle", "-o", tmp_path / "again.png")
+    assert status == 0, stderr
+    assert stderr.startswith("sphere-nlp picture: wrote %s: coloured by angle distortion" % (tmp_path / "again.png"))
+    # The same panels, colour bar and caption as the run's own picture (only the title above differs).
+    run, again = imread(str(tmp_path / "run.png")), imread(str(tmp_path / "again.png"))
+    assert run.shape == again.shape
+    differing = (np.abs(run[40:] - again[40:]).max(axis=2) > 0.02).mean()
+    assert differing < 1e-3, differing
+    # Without -o the picture goes beside the sphere, named after it; the measure then follows the
+    # map's numbers (the default mode shrinks the caps: coloured by area).
+    status, stderr = run_cli(capsys, "picture", MODELS / "cylinder.off", sphere)
+    assert status == 0 and "wrote %s: coloured by log(sphere area / mesh area)" % (tmp_path / "cylinder.png") in stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again.png", "cylinder.png", "cylinder.sphere.off", "run.png"]
+
+
 def test_png_refused_for_uncertified_results_and_bad_names(cylinder_result, tmp_path):
     bad = dataclasses.replace(cylinder_result, certificate=dataclasses.replace(
         cylinder_result.certificate, valid=False, reason="degree 0 instead of 1"))
