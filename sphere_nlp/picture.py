@@ -14,7 +14,8 @@ Choices that make the picture say something:
 * **Upright.** Meshes come Y-up (most graphics meshes: Stanford scans, OBJ exports) or Z-up (CAD,
   scans of busts, medical data), and the picture draws the mesh's up axis up. Unless given
   (``up="y"``, ``"-z"``, a vector), :func:`detect_up` finds it: the axis pointing away from a flat
-  base (a bust's cut, a pedestal, a cylinder's cap) when there is one, else +Y.
+  base (a bust's cut, a pedestal, a cylinder's cap) when there is one, else away from the feet of
+  three or more legs (an animal, whichever axis it was modelled along), else +Y.
 * **View.** Unless one is given, the camera looks from the direction, level or from above, in which
   the upright mesh shows the most projected area (:func:`best_view`), so a model is seen from its
   broad side, not end-on.
@@ -51,6 +52,10 @@ UP_AXES = ("+x", "+y", "+z", "-x", "-y", "-z")     # detect_up's answers, in its
 FLAT_BASE_SHARE = 0.02               # a flat base holds at least this share of the surface ...
 FLAT_BASE_BAND = 0.005               # ... within this fraction of the mesh's size of its lowest point
 FLAT_BASE_COS = np.cos(np.radians(5.0))      # ... facing within 5 degrees of straight down
+# Legs are looked for in the lowest 10% of the height: there a standing animal's legs are separate
+# columns (cat, koala, spot), while at a quarter of the height a cow's belly already joins them.
+LEG_SLAB = 0.1
+LEG_REACH = 0.2                      # a leg reaches within this share of the slab of its floor and top
 
 
 def triangle_measure(mesh_vertices, sphere_vertices, faces, measure="area"):
@@ -150,15 +155,70 @@ def flat_base_shares(vertices, faces):
     return np.array(shares)
 
 
+def standing_legs(vertices, faces):
+    """Per direction of :data:`UP_AXES`: how many legs the mesh would stand on if that direction
+    were up, (6,) ints (0 when it would not stand).
+
+    A leg is a separate piece of the surface in the lowest 10% of the height that crosses that slab,
+    from near the floor to near its top (a column, not a bump of a back lying on the floor). The
+    mesh stands when at least three legs hold its area centroid above the polygon of their feet.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    vertices, faces = np.asarray(vertices, float), np.asarray(faces, np.int64)
+    triangles = vertices[faces]
+    areas = np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1)
+    centroid = (triangles.mean(axis=1) * areas[:, None]).sum(axis=0) / max(areas.sum(), 1e-300)
+    edges = np.r_[faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]
+    legs = []
+    for axis in UP_AXES:
+        up = up_vector(axis)
+        height = vertices @ up
+        floor = height.min()
+        slab = LEG_SLAB * max(np.ptp(height), 1e-300)
+        low = height < floor + slab
+        kept = edges[(low[faces].all(axis=1))[np.arange(len(edges)) % len(faces)]]
+        graph = coo_matrix((np.ones(len(kept)), (kept[:, 0], kept[:, 1])), shape=(len(vertices),) * 2)
+        _, labels = connected_components(graph, directed=False)
+        in_slab = np.zeros(len(vertices), bool)
+        in_slab[kept.ravel()] = True
+        pieces = labels[in_slab]
+        lowest = np.full(labels.max() + 1, np.inf)
+        highest = np.full(labels.max() + 1, -np.inf)
+        np.minimum.at(lowest, pieces, height[in_slab])
+        np.maximum.at(highest, pieces, height[in_slab])
+        columns = np.flatnonzero((lowest < floor + LEG_REACH * slab) & (highest > floor + (1 - LEG_REACH) * slab))
+        feet = np.array([vertices[in_slab][pieces == c].mean(axis=0) for c in columns]).reshape(-1, 3)
+        basis = np.linalg.svd(np.eye(3) - np.outer(up, up))[0][:, :2]
+        standing = len(columns) >= 3 and _inside_hull(feet @ basis, centroid @ basis)
+        legs.append(len(columns) if standing else 0)
+    return np.array(legs)
+
+
+def _inside_hull(points, point):
+    """Whether ``point`` lies inside the convex hull of the 2D ``points`` (False when they are collinear)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(points)
+    except (QhullError, ValueError):
+        return False
+    return bool((hull.equations[:, :2] @ point + hull.equations[:, 2] <= 1e-12).all())
+
+
 def detect_up(vertices, faces):
     """The mesh's up axis, one of :data:`UP_AXES`.
 
     A mesh with a flat base (a bust's cut, a pedestal, a cylinder's cap: at least 2% of the surface
     flat at the bottom, :func:`flat_base_shares`) stands on it; of several within 10% of the largest,
-    the first in :data:`UP_AXES` (+Y before +Z, + before -). Without one, +Y: the convention of most
-    graphics meshes (the Stanford bunny and armadillo, spot, meshes exported as OBJ), whose feet,
-    paws and hooves are rarely flat. Z-up meshes without a flat base (FreeSurfer's cortical surfaces,
-    in RAS coordinates) need ``up="z"``.
+    the first in :data:`UP_AXES` (+Y before +Z, + before -). Else an animal stands on its legs: the
+    direction in which the most legs (at least three) hold it up (:func:`standing_legs`), first in
+    :data:`UP_AXES` on a tie, so a cat or a koala modelled Z-up, or lying along any axis, is drawn
+    standing. Else +Y: the convention of most graphics meshes (the Stanford bunny and armadillo,
+    meshes exported as OBJ); two-legged figures are left to it, since a figure lying on its back
+    has two columns (its heels) as well. Z-up meshes without a flat base or legs (FreeSurfer's
+    cortical surfaces, in RAS coordinates) need ``up="z"``.
 
     Examples
     --------
@@ -170,9 +230,12 @@ def detect_up(vertices, faces):
     '+y'
     """
     shares = flat_base_shares(vertices, faces)
-    if shares.max() < FLAT_BASE_SHARE:
-        return "+y"
-    return UP_AXES[int(np.flatnonzero(shares >= 0.9 * shares.max())[0])]
+    if shares.max() >= FLAT_BASE_SHARE:
+        return UP_AXES[int(np.flatnonzero(shares >= 0.9 * shares.max())[0])]
+    legs = standing_legs(vertices, faces)
+    if legs.max() >= 3:
+        return UP_AXES[int(np.argmax(legs))]
+    return "+y"
 
 
 def upright_rotation(up):

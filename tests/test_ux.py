@@ -284,10 +284,35 @@ def test_detect_up_on_real_meshes_modelled_y_up_and_z_up():
     from conftest import shared_mesh
     from sphere_nlp.picture import detect_up
 
+    # Two-legged figures too: their feet are not taken for a stance lying down.
     expected = {"bunny.off": "+y", "knight.off": "+y", "penguin.obj": "+y", "spot.obj": "+y",
-                "hand_closed.obj": "+y", "cheburashka.off": "+y", "nefertiti.obj": "+z"}
+                "hand_closed.obj": "+y", "cheburashka.off": "+y", "nefertiti.obj": "+z",
+                "human_woman.obj": "+y", "elephant.obj": "+y", "armadillo_remeshed.obj": "+y"}
     found = {name: detect_up(*sphere_nlp.load_mesh(shared_mesh(name))) for name in expected}
     assert found == expected
+
+
+def test_detect_up_stands_a_four_legged_body_on_its_legs_whichever_axis_they_point_along():
+    import meshgen
+    from sphere_nlp.picture import UP_AXES, detect_up, flat_base_shares, standing_legs, upright_rotation
+
+    V, F = meshgen.four_legged_body()                       # modelled Z up: legs along -z, a tail
+    assert flat_base_shares(V, F).max() < 0.02              # round feet: the legs, not a base, decide
+    for axis in UP_AXES:                                    # legs along -x, -y, -z, +x, +y, +z
+        W = V @ upright_rotation(axis)                      # takes +Z to the axis
+        assert detect_up(W, F) == axis
+        assert standing_legs(W, F)[UP_AXES.index(axis)] == 4
+
+
+@pytest.mark.parametrize("name", ["cat.obj", "koala.obj"])
+def test_detect_up_stands_a_real_animal_on_its_paws_however_it_was_modelled(name):
+    from conftest import shared_mesh
+    from sphere_nlp.picture import UP_AXES, detect_up, upright_rotation
+
+    V, F = sphere_nlp.load_mesh(shared_mesh(name))           # both modelled Y up
+    for axis in UP_AXES:
+        W = V @ (upright_rotation(axis).T @ upright_rotation("y")).T      # +Y taken to the axis
+        assert detect_up(W, F) == axis, axis
 
 
 def test_picture_draws_the_up_axis_up(tmp_path):
