@@ -19,11 +19,14 @@ Choices that make the picture say something:
 * **View.** Unless one is given, the camera looks from the direction, level or from above, in which
   the upright mesh shows the most projected area (:func:`best_view`), so a model is seen from its
   broad side, not end-on.
-* **Colour scale.** One linear scale with labelled ticks: symmetric about 0 for the signed log area
-  ratio (white = a triangle keeping its share of the surface), from 0 for the angle distortion. It
-  reaches the larger side of the 2nd..98th area-weighted percentiles, rounded up to a tick
-  (:func:`colour_range`); the share of the surface beyond it is stated under the colour bar, so a few
-  extreme slivers cannot wash the picture out.
+* **Colour scale.** Labelled ticks that name its range: from 0 for the angle distortion; for the
+  signed log area ratio white at 0 (a triangle keeping its share of the surface), symmetric unless
+  one side reaches less than half as far as the other, then each side on its own linear scale (a
+  default-mode map shrinks limbs by e^-15 and grows the body by e^1: on a +-15 scale the sphere,
+  all body, would be white). The scale reaches the 2nd and 98th percentiles of what the panels
+  show (mesh and sphere areas), rounded up to a tick (:func:`colour_range`); the share of the
+  surface beyond it is stated under the colour bar, so a few extreme slivers cannot wash the
+  picture out.
 * **Checkerboard.** The colours of the texture written beside OBJ files
   (:data:`sphere_nlp.texture.CHECKER_COLOURS`), so the picture shows what a viewer shows. Each
   triangle is cut exactly along the checker lines in its (u, v) (linear in the triangle, as a
@@ -381,14 +384,27 @@ def tick_step(extent, per_side=3):
     return float(np.round(step, 12))
 
 
-def colour_range(values, weights, measure):
-    """(low, high, ticks, clipped share): one linear colour scale for a measure.
+def _side(reach):
+    """(end, ticks from 0 out) of one side of a colour scale reaching ``reach`` >= 0: the reach
+    rounded up to a round step (:func:`tick_step`), two or three steps from 0."""
+    step = tick_step(reach)
+    steps = int(np.ceil(reach / step - 1e-9))
+    return float(np.round(steps * step, 12)), [float(np.round(k * step, 12)) for k in range(1, steps + 1)]
 
-    The scale reaches the larger side of the weighted 2nd..98th percentile range, rounded up to a
-    round tick step (:func:`tick_step`); it is symmetric about 0 for the signed log area ratio (so
-    equal colours mean equal factors of growth and shrinkage) and starts at 0 for the angle
-    distortion. ``ticks`` are evenly spaced, 0 among them; the share is that of the weight beyond
-    the scale.
+
+def colour_range(values, weights, measure, shown=None):
+    """(low, high, ticks, clipped share): the colour scale of a measure.
+
+    The scale reaches the weighted 2nd and 98th percentiles, each rounded up to a round tick step
+    (:func:`tick_step`). The angle distortion's starts at 0. The signed log area ratio's has 0
+    (white: a triangle keeping its share of the surface) in its middle and is symmetric (equal
+    colours, equal factors of growth and shrinkage) unless one side reaches less than half as far as
+    the other: then each side has its own range, so a default-mode map whose limbs shrink by e^-15
+    while its body grows by e^1 shows the body in red instead of washing it out on a +-15 scale;
+    the colour bar's ticks name both ends. Neither side reaches less than a tenth of the other.
+    The percentiles are taken with the ``shown`` weights (by default ``weights``: give what both
+    panels show, the mesh's and the sphere's areas, so neither panel is left blank); the clipped
+    share is that of ``weights`` beyond the scale. ``ticks`` are evenly spaced on each side, 0 among them.
 
     Examples
     --------
@@ -396,24 +412,31 @@ def colour_range(values, weights, measure):
     >>> low, high, ticks, share = colour_range(v, np.ones(100), "area")
     >>> low, high, ticks, share
     (-1.0, 1.0, [-1.0, -0.5, 0.0, 0.5, 1.0], 0.02)
+    >>> colour_range(np.linspace(-14, 1.2, 100), np.ones(100), "area")[:3]      # two-sided
+    (-15.0, 1.5, [-15.0, -10.0, -5.0, 0.0, 0.5, 1.0, 1.5])
     >>> colour_range(np.r_[np.zeros(50), np.full(50, 4.0)], np.ones(100), "angle")[:3]
     (0.0, 4.0, [0.0, 2.0, 4.0])
     """
     values, weights = np.asarray(values, float), np.asarray(weights, float)
+    shown = weights if shown is None else np.asarray(shown, float)
     finite = np.isfinite(values)
     if finite.any():
-        values, weights = values[finite], weights[finite]
-        quantiles = [weighted_percentile(values, weights, q) for q in COLOUR_PERCENTILES]
+        quantiles = [weighted_percentile(values[finite], shown[finite], q) for q in COLOUR_PERCENTILES]
     else:
         quantiles = [0.0, 0.0]
-    reach = max(abs(quantiles[0]) if measure == "area" else 0.0, quantiles[1], 1e-3)
-    step = tick_step(reach)
-    steps = int(np.ceil(reach / step - 1e-9))
-    high = float(np.round(steps * step, 12))
-    low = -high if measure == "area" else 0.0
-    ticks = [float(np.round(k * step, 12)) for k in range(-steps if measure == "area" else 0, steps + 1)]
-    ticks = [0.0 if t == 0 else t for t in ticks]
-    beyond = weights[(values < low) | (values > high)].sum() if finite.any() else 0.0
+    if measure == "area":
+        below, above = max(-quantiles[0], 1e-3), max(quantiles[1], 1e-3)
+        larger = max(below, above)
+        if min(below, above) >= larger / 2:
+            below = above = larger
+        below, above = max(below, larger / 10), max(above, larger / 10)
+        low, low_ticks = _side(below)
+        high, high_ticks = _side(above)
+        low, ticks = -low, [-t for t in low_ticks[::-1]] + [0.0] + high_ticks
+    else:
+        high, high_ticks = _side(max(quantiles[1], 1e-3))
+        low, ticks = 0.0, [0.0] + high_ticks
+    beyond = weights[finite][(values[finite] < low) | (values[finite] > high)].sum()
     return low, high, ticks, float(beyond / max(weights.sum(), 1e-300))
 
 
@@ -534,7 +557,7 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
+    from matplotlib.colors import Normalize, TwoSlopeNorm
     from matplotlib.figure import Figure
 
     from .metrics import normalised_areas_3d
@@ -553,8 +576,14 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
                              "[-90, 90]; got %r" % (view,))
     label, colour_map_name = MEASURES[measure]
     values = triangle_measure(mesh_vertices, sphere_vertices, faces, measure)
-    low, high, ticks, clipped = colour_range(values, normalised_areas_3d(mesh_vertices, faces), measure)
-    norm = Normalize(low, high)
+    mesh_share = normalised_areas_3d(mesh_vertices, faces)
+    # What the two panels show: each triangle with its mesh share and its sphere share (the mesh's
+    # times the area ratio), so that the body filling a default-mode map's sphere gets colours.
+    sphere_share = mesh_share * np.exp(np.clip(np.nan_to_num(values, nan=0.0, neginf=-700.0), -700, 700)) \
+        if measure == "area" else mesh_share
+    low, high, ticks, clipped = colour_range(values, mesh_share, measure,
+                                             shown=mesh_share / mesh_share.sum() + sphere_share / sphere_share.sum())
+    norm = TwoSlopeNorm(0.0, low, high) if measure == "area" else Normalize(low, high)
     colour_map = matplotlib.colormaps[colour_map_name]
     colours = colour_map(norm(np.nan_to_num(values, nan=0.0)))
 
@@ -588,7 +617,10 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
                        extend="both" if measure == "area" else "max")
     bar.set_ticks(ticks)
     bar.ax.xaxis.set_major_formatter("{x:g}")
-    bar.set_label("%s; %.1f%% of the surface beyond the range" % (label, 100 * clipped), fontsize=11)
+    two_sided = measure == "area" and low != -high
+    bar.set_label("%s from %g to %g%s; %.1f%% of the surface beyond the range"
+                  % (label, low, high, " (each side of 0 on its own scale)" if two_sided else "", 100 * clipped),
+                  fontsize=11)
     fig.text(0.56, 0.085, "up: %s%s; view: azimuth %g°, elevation %g°"
              % ((up_text, " (detected)" if detected else "") + view), fontsize=10)
     if title:

@@ -237,20 +237,61 @@ def test_png_colour_scale_is_one_linear_scale_symmetric_about_zero(cylinder_resu
 
 
 @pytest.mark.parametrize("reach", [3e-4, 0.047, 0.47, 1.0, 2.3, 14.0, 1234.0])
-def test_colour_scale_ticks_are_round_even_and_cover_the_range(reach):
-    from sphere_nlp.picture import colour_range
+@pytest.mark.parametrize("shorter", [1 / 3, 0.8])
+def test_colour_scale_ticks_are_round_even_and_cover_the_range(reach, shorter):
+    from sphere_nlp.picture import colour_range, weighted_percentile
 
-    values = np.linspace(-reach / 3, reach, 500)
+    values = np.linspace(-reach * shorter, reach, 500)
     for measure in ("area", "angle"):
         low, high, ticks, share = colour_range(values if measure == "area" else np.abs(values),
                                                np.ones(500), measure)
-        step = ticks[1] - ticks[0]
-        assert np.allclose(np.diff(ticks), step) and ticks[0] == low and ticks[-1] == high
-        assert (low == -high) if measure == "area" else (low == 0)
-        mantissa = step / 10 ** np.floor(np.log10(step))
-        assert any(np.isclose(mantissa, m) for m in (1, 2, 2.5, 5))      # labels read as round numbers
-        assert max(reach, 1e-3) * 0.98 <= high < max(reach, 1e-3) + step
-        assert round(high / step) in (2, 3)                   # two or three labelled steps from 0 to each end
+        assert ticks[0] == low and ticks[-1] == high and 0.0 in ticks
+        zero = ticks.index(0.0)
+        # Each side reaches its 2nd or 98th percentile (the larger one on both when symmetric).
+        shown = values if measure == "area" else np.abs(values)
+        above = max(weighted_percentile(shown, np.ones(500), 98), 1e-3)
+        below = max(-weighted_percentile(shown, np.ones(500), 2), 1e-3)
+        symmetric = measure == "area" and min(above, below) >= max(above, below) / 2
+        sides = [(ticks[zero:], max(above, below) if symmetric else above)]
+        if measure == "area":
+            sides.append(([-t for t in ticks[zero::-1]], max(above, below) if symmetric else below))
+        for side, side_reach in sides:
+            step = side[1] - side[0]
+            assert np.allclose(np.diff(side), step)
+            mantissa = step / 10 ** np.floor(np.log10(step))
+            assert any(np.isclose(mantissa, m) for m in (1, 2, 2.5, 5))      # labels read as round numbers
+            assert round(side[-1] / step) in (2, 3)           # two or three labelled steps from 0 to each end
+            assert side_reach <= side[-1] < side_reach + step
+        if measure == "area":
+            # Symmetric when the sides reach within a factor 2 of each other, else each on its own.
+            assert (low == -high) == symmetric and symmetric == (shorter > 0.5 or reach < 1e-3)
+        else:
+            assert low == 0
+
+
+def test_sphere_panel_of_a_default_mode_map_of_a_limbed_body_is_coloured(tmp_path):
+    from matplotlib.image import imread
+    import meshgen
+
+    # A conformal map shrinks the legs by e^-15 and grows the body, which fills the sphere, by e^1:
+    # on one scale symmetric about 0 that sphere panel was all white.
+    result = sphere_nlp.parameterize(meshgen.four_legged_body())
+    assert result.success and result.shrinkage()["note"]
+    info = result.write_png(tmp_path / "p.png")
+    low, high = info["colour_limits"]
+    assert low <= -10 and 0.5 <= high <= 3                  # each side of 0 on its own range
+    pixels = imread(str(tmp_path / "p.png"))[:, :, :3]
+    mesh, sphere = pixels[40:450, 20:480], pixels[40:450, 520:980]
+    for panel in (mesh, sphere):
+        drawn = (panel < 0.97).any(axis=2)
+        coloured = drawn & (np.ptp(panel, axis=2) > 0.1)   # not the greys of white shaded
+        assert drawn.sum() > 20_000 and coloured.sum() > 0.5 * drawn.sum()
+        # Not one colour either: the body's growth varies over the sphere.
+        hues = np.unique((panel[coloured] * 8).astype(int), axis=0)
+        assert len(hues) >= 8
+    # The body red on both panels, the legs blue on the mesh.
+    assert (sphere[..., 0] > sphere[..., 2] + 0.15).sum() > 20_000
+    assert (mesh[..., 0] > mesh[..., 2] + 0.15).sum() > 5_000 and (mesh[..., 2] > mesh[..., 0] + 0.15).sum() > 5_000
 
 
 def y_up_figure(base=True):
