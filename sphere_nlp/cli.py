@@ -33,7 +33,7 @@ DEFAULT_AREA_FLOOR = 1e-12
 # Three runnable examples (tests/test_ux.py runs each of them).
 EXAMPLES = """examples:
   sphere-nlp models/cylinder.off
-  sphere-nlp models/cylinder.off -o cylinder.obj --png cylinder.png
+  sphere-nlp models/cylinder.off -o cylinder.obj --png
   sphere-nlp models/cylinder.off --target equal-areas --textured-input painted.obj --report run.json
 """
 
@@ -56,8 +56,10 @@ def build_parser():
                                             "longitude/latitude texture coordinates (default: <input name "
                                             "without its last extension>[.MODE unless the default]"
                                             ".sphere.off here)")
-    out.add_argument("--png", metavar="OUT.png",
-                     help="picture: mesh and sphere coloured by distortion, mesh checkerboarded")
+    out.add_argument("--png", action="store_true",
+                     help="picture beside the sphere, named after it (-o cyl.obj: cyl.png; bunny.sphere.off: "
+                          "bunny.png), as in batch: mesh and sphere coloured by distortion, mesh checkerboarded; "
+                          "'%s picture MESH SPHERE' redraws it later without solving" % PROG)
     out.add_argument("--png-measure", choices=("area", "angle"),
                      help="colouring of the picture: log area ratio or angle distortion (default: the "
                           "one the target mode does not optimise)")
@@ -353,6 +355,30 @@ def failure_line(result, report=None):
     return why + ("; nothing written but the report %s" % report if report else "; nothing written")
 
 
+def picture_name(sphere_path):
+    """Where --png writes: :func:`sphere_nlp.picture.picture_name` (repeated here so that --help
+    need not import numpy; a doctest keeps the two alike).
+
+    >>> from sphere_nlp import picture
+    >>> all(picture_name(p) == picture.picture_name(p) for p in ("a/b.sphere.off", "c.obj", "d.x.sphere.ply"))
+    True
+    """
+    path = Path(sphere_path)
+    stem = path.stem[:-len(".sphere")] if path.stem.endswith(".sphere") else path.stem
+    return path.with_name((stem or path.stem) + ".png")
+
+
+def png_given_a_name(argv):
+    """A UsageError for ``--png NAME.png`` (--png takes no name: the picture goes beside the sphere),
+    or None; argparse would only call the name an unrecognized argument."""
+    for option, value in zip(argv, argv[1:]):
+        if option == "--png" and value.lower().endswith(".png"):
+            return errors.UsageError("--png takes no file name: the picture goes beside the sphere, named after "
+                                     "it (for %s, give the sphere that name: -o %s)"
+                                     % (value, Path(value).with_suffix(".off")))
+    return None
+
+
 def run(args, progress):
     from .api import parameterize
     from .mesh_io import check_mesh_path, load_mesh, output_transaction
@@ -362,7 +388,6 @@ def run(args, progress):
     # Every option and output path is checked before the (possibly long) solve.
     check_arguments(args)
     check_mesh_path(output)
-    _check_suffix(args.png, ".png", "a picture")
     _check_suffix(args.textured_input, ".obj", "a textured mesh")
     _check_suffix(args.texture, ".png", "a texture")
     _check_suffix(args.save_distortion, ".npz", "a distortion file")
@@ -370,8 +395,9 @@ def run(args, progress):
     if args.texture and not is_obj and not args.textured_input:
         raise errors.UsageError("--texture needs an OBJ output (-o X.obj or --textured-input X.obj)")
     outputs = [("-o" if args.output else "the default output", output)]
+    png = picture_name(output) if args.png else None
     outputs += [(option, Path(path)) for option, path in
-                (("--png", args.png), ("--textured-input", args.textured_input),
+                (("--png", png), ("--textured-input", args.textured_input),
                  ("--save-solution", args.save_solution), ("--save-distortion", args.save_distortion),
                  ("--report", args.report)) if path]
     # The texture image goes beside each OBJ written (one file when both OBJs share a folder).
@@ -430,7 +456,7 @@ def run(args, progress):
             result.save_distortion(args.save_distortion)
         if args.png:
             progress.stage("write (picture)")
-            result.write_png(args.png, measure=args.png_measure, view=args.view, up=args.up)
+            result.write_png(png, measure=args.png_measure, view=args.view, up=args.up)
         if args.report:
             result.write_report(args.report)
         _write_hook("staged")
@@ -478,6 +504,9 @@ def main(argv=None):
         stderr.write("%s: error: %s\n" % (PROG, unknown))
         return unknown.exit_status
     try:
+        named_png = png_given_a_name(argv)
+        if named_png is not None:
+            raise named_png
         parser = build_parser()
         args = parser.parse_args(join_negative_values(argv))
     except errors.UsageError as exc:

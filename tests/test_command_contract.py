@@ -83,7 +83,7 @@ def test_a_signal_at_a_random_moment_of_the_first_second_ends_the_run_with_nothi
         first = (signal.SIGINT, signal.SIGTERM)[k % 2]
         second = (None, signal.SIGINT, signal.SIGTERM)[k % 3]
         process = subprocess.Popen(command(mesh, "--target", "equal-areas", "-o", "out.off", "--report", "r.json",
-                                           "--png", "p.png"), cwd=folder, env=env(),
+                                           "--png"), cwd=folder, env=env(),
                                    stderr=subprocess.PIPE, text=True)
         time.sleep(rng.uniform(0.0, 1.0))
         ready = handler_installed(process.pid)
@@ -280,8 +280,7 @@ def test_subcommands_do_not_import_the_command_line_module():
 
 def test_view_takes_a_negative_azimuth_as_its_own_argument(tmp_path, capsys):
     for view in (["--view", "-60,20"], ["--view=-60,20"]):
-        status = main([str(MODELS / "cylinder.off"), "-o", str(tmp_path / "s.off"), "--png",
-                       str(tmp_path / "p.png"), *view, "-q"])
+        status = main([str(MODELS / "cylinder.off"), "-o", str(tmp_path / "s.off"), "--png", *view, "-q"])
         assert status == 0, capsys.readouterr().err
     assert main([str(MODELS / "cylinder.off"), "--view", "-60"]) == 2
     assert "expected AZIMUTH,ELEVATION" in one_line(capsys.readouterr().err, "sphere-nlp: error:")
@@ -302,7 +301,7 @@ def test_view_takes_a_negative_azimuth_as_its_own_argument(tmp_path, capsys):
     (["--up", "w"], "argument --up"),
 ], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
 def test_every_numeric_option_is_checked_before_solving(option, fragment, tmp_path, capsys):
-    outputs = ["-o", str(tmp_path / "s.off"), "--png", str(tmp_path / "p.png")]
+    outputs = ["-o", str(tmp_path / "s.off"), "--png"]
     started = time.perf_counter()
     assert main([str(MODELS / "cylinder.off"), *outputs, *option, "-q"]) == 2
     line = capsys.readouterr().err.strip()
@@ -333,7 +332,7 @@ runpy.run_module("sphere_nlp", run_name="__main__")
 def test_quiet_silences_warnings_too(tmp_path):
     for quiet in ([], ["-q"]):
         p = subprocess.run([sys.executable, "-c", WARNING_PROGRAM, str(MODELS / "cylinder.off"), "-o",
-                            str(tmp_path / "s.off"), "--png", str(tmp_path / "p.png"), *quiet],
+                            str(tmp_path / "s.off"), "--png", *quiet],
                            capture_output=True, text=True, env=env(), cwd=tmp_path)
         assert p.returncode == 0, p.stderr
         assert ("RuntimeWarning" in p.stderr) == (not quiet), p.stderr

@@ -435,9 +435,8 @@ def test_best_view_faces_the_broad_side_and_view_option_overrides_it(tmp_path, c
     V, F = icosphere(2)
     azimuth, elevation = best_view(V * [0.2, 1, 1], F)         # a plate in the y-z plane
     assert abs(np.cos(np.radians(azimuth)) * np.cos(np.radians(elevation))) > 0.95
-    status, _ = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.off", "--png", tmp_path / "p.png",
-                        "--view=-30,10", "-q")
-    assert status == 0 and (tmp_path / "p.png").read_bytes()[:8] == PNG_SIGNATURE
+    status, _ = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.off", "--png", "--view=-30,10", "-q")
+    assert status == 0 and (tmp_path / "s.png").read_bytes()[:8] == PNG_SIGNATURE
     status, stderr = run_cli(capsys, MODELS / "cylinder.off", "--view", "north")
     assert status == 2 and "--view" in stderr
 
@@ -530,7 +529,7 @@ def with_models(directory):
 
 def test_quiet_prints_nothing_on_success(tmp_path, capsys):
     status, stderr = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.obj", "--png",
-                             tmp_path / "s.png", "--textured-input", tmp_path / "t.obj", "--quiet")
+                             "--textured-input", tmp_path / "t.obj", "--quiet")
     assert status == 0 and stderr == "" and capsys.readouterr().out == ""
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.obj", "s.png", "t.obj"]
 
@@ -561,18 +560,39 @@ def test_failed_run_writes_no_picture_and_no_meshes(tmp_path, capsys):
 
     source = tmp_path / "ellipsoid.off"
     sphere_nlp.write_mesh(source, *meshgen.ellipsoid(2))
-    status, stderr = run_cli(capsys, source, "-o", tmp_path / "s.obj", "--png", tmp_path / "s.png",
+    status, stderr = run_cli(capsys, source, "-o", tmp_path / "s.obj", "--png",
                              "--textured-input", tmp_path / "t.obj", "--max-iter", "1")
     assert status == 1 and "nothing written" in stderr
     assert [p.name for p in tmp_path.iterdir()] == ["ellipsoid.off"]
 
 
 def test_bad_picture_or_texture_name_is_a_usage_error_before_solving(tmp_path, capsys):
-    for option, name in (("--png", "s.jpg"), ("--textured-input", "t.ply")):
-        status, stderr = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.off", option,
-                                 tmp_path / name)
-        assert status == 2 and "must end in" in stderr and "mapping" not in stderr
+    status, stderr = run_cli(capsys, MODELS / "cylinder.off", "--textured-input", tmp_path / "t.ply")
+    assert status == 2 and "must end in" in stderr and "mapping" not in stderr
+    # --png is a flag, as in batch: a name after it is refused with the way to get that name.
+    status, stderr = run_cli(capsys, MODELS / "cylinder.off", "--png", tmp_path / "p.png")
+    assert status == 2 and stderr.strip() == ("sphere-nlp: error: --png takes no file name: the picture goes beside "
+                                              "the sphere, named after it (for %s, give the sphere that name: -o %s)"
+                                              % (tmp_path / "p.png", tmp_path / "p.off"))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_png_is_one_flag_naming_the_picture_after_the_sphere_in_the_main_command_and_batch(tmp_path, capsys,
+                                                                                         monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for argv in ([MODELS / "cylinder.off", "--png", "-q"],
+                 [MODELS / "cylinder.off", "--png", "--target", "equal-areas", "-q"],
+                 ["batch", MODELS / "cylinder.off", "--out", "b", "--png", "-q"]):
+        assert run_cli(capsys, *argv)[0] == 0
+    # Each picture beside its sphere under the sphere's name, the mode included where the name has it.
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == ["cylinder.equal-areas.png", "cylinder.png"]
+    assert (tmp_path / "b" / "cylinder.png").read_bytes()[:8] == PNG_SIGNATURE
+    help_text = subprocess.run([sys.executable, "-m", "sphere_nlp", "--help"], capture_output=True, text=True,
+                               env=checkout_env()).stdout
+    batch_help = subprocess.run([sys.executable, "-m", "sphere_nlp", "batch", "--help"], capture_output=True,
+                                text=True, env=checkout_env()).stdout
+    assert "beside the sphere, named after it" in " ".join(help_text.split())
+    assert "beside each sphere, named after it" in " ".join(batch_help.split())
 
 
 class FakeTerminal(io.StringIO):
@@ -761,6 +781,19 @@ def test_readme_python_runs_and_its_numbers_are_current(tmp_path, monkeypatch):
     assert "# %.2f: mean angle distortion" % distortion["mean_abs_angle_diff_deg"] in readme
     assert ("mean angle distortion %.2f°, mean |log area ratio| %.3f"
             % (distortion["mean_abs_angle_diff_deg"], distortion["mean_abs_log_area"])) in readme
+
+
+def test_readme_stays_short_and_its_terms_are_in_the_glossary():
+    readme = (ROOT / "README.md").read_text()
+    assert len(readme) < 15_000
+    glossary = (ROOT / "docs" / "glossary.md").read_text()
+    assert "docs/glossary.md" in readme
+    terms = ["authalic", "certified", "degree 1", "polish", "objective (9)", "log-chord", "Hausdorff", "icosphere K"]
+    for term in terms:
+        # Each term the README uses has an entry of its own: a bold heading followed by its meaning.
+        assert term.split()[0] in readme, term
+        entry = re.search(r"^\* \*\*%s[^*]*\*\*: (.+?)(?=^\* |\Z)" % re.escape(term), glossary, re.M | re.S)
+        assert entry and len(entry[1].split()) >= 15, term
 
 
 # --- results in the ecosystem: trimesh, textured OBJ, version, one program name ----------------------
