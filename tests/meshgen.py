@@ -195,9 +195,6 @@ def tentacle_creature(n_tentacles=8, segments=10, step=0.25, taper=0.97, subdivi
     z = 1 - 2 * k / n_tentacles
     phi = np.pi * (1 + 5 ** 0.5) * k
     directions = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
-    if directions is not None and given_directions is not None:
-        directions = np.asarray(given_directions, float)
-        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     centroids = np.array([np.mean([V[i] for i in f], axis=0) for f in F])
     roots = {int(np.argmax(centroids @ d)) for d in directions}
     new_faces = [f for i, f in enumerate(F) if i not in roots]
@@ -294,7 +291,7 @@ def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions
     z = 1 - 2 * k / (n_limbs + n_tails)
     phi = np.pi * (1 + 5 ** 0.5) * k
     directions = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
-    if directions is not None and given_directions is not None:
+    if given_directions is not None:
         directions = np.asarray(given_directions, float)
         directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     ratios = np.r_[np.linspace(length_ratios[0], length_ratios[-1], n_limbs), [tail_ratio] * n_tails]
