@@ -309,7 +309,7 @@ class SphericalParameterization:
         one the mode does not optimise (angle distortion for the area modes, log area ratio for the
         angle modes), which is where its map pays. ``up`` is the input's up axis ("y", "-z", ... or
         a vector), drawn up; by default detected (:func:`sphere_nlp.picture.detect_up`: a flat base,
-        else +Y). ``view`` = (azimuth, elevation) in degrees around the upright mesh, by default the
+        else three or more legs, else +Y). ``view`` = (azimuth, elevation) in degrees around the upright mesh, by default the
         side with the most projected area. See
         :func:`sphere_nlp.picture.render_png`. Written atomically; refuses uncertified results like
         :meth:`write`.

@@ -5,12 +5,15 @@ The output folder holds, per mesh ``NAME`` (the input's file name without its ex
 parent folders where two inputs have the same file name, e.g. ``sub-01/lh``):
 
 - ``NAME.sphere.off`` (or ``.obj`` / ``.ply`` with ``--format``), only for a certified sphere;
-- ``NAME.png`` with ``--png``, only for a certified sphere;
+- ``NAME.png`` with ``--png`` (the sphere's name with .png, as the main command names its picture),
+  only for a certified sphere;
 - ``NAME.report.json``: :meth:`~sphere_nlp.api.SphericalParameterization.report` with a ``batch``
   section (input, options, summary row), written last and also for a failed mesh;
 
-and for the batch ``summary.csv`` and ``summary.md``: one row per mesh with its vertices, status,
-exit reason, time, iterations, distortion figures and peak memory. A worker writes a mesh's files as
+and for the batch ``summary.csv`` and ``summary.md``: one row per mesh with its target (mode),
+vertices, status, exit reason, time, iterations, distortion figures and peak memory. A mesh mapped
+again loses the outputs of its earlier run that this run does not write (a picture, after a rerun
+without ``--png``), so nothing in the folder belongs to another run's map. A worker writes a mesh's files as
 temporary files; the batch renames them into place and rewrites the summary, at most every
 :data:`COMMIT_INTERVAL_S` seconds for all meshes finished meanwhile, so the summary always lists
 exactly the meshes whose files are complete.
@@ -56,6 +59,7 @@ from .heap import arrays_on_heap
 from .mesh_io import (atomic_output, commit_staged, discard_staged, load_mesh, staged_outputs,
                       write_json)
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS
+from .picture import picture_name
 from .solve import ON_LIMIT
 from .targets import MODES
 
@@ -84,11 +88,11 @@ COMMIT_INTERVAL_S = 2.0
 # After a signal, how long the Dask tasks of the batch get to stop before the batch exits.
 DASK_STOP_WAIT_S = 1.5
 
-SUMMARY_FIELDS = ("mesh", "input", "vertices", "status", "reason", "time_s", "iterations",
+SUMMARY_FIELDS = ("mesh", "input", "target", "vertices", "status", "reason", "time_s", "iterations",
                   "mean_abs_angle_diff_deg", "mean_abs_log_area", "qc_mean", "area_cv", "peak_rss_mb",
                   "output", "resumed")
 # The columns of summary.md: (row key, header, format).
-TABLE_COLUMNS = (("mesh", "mesh", "%s"), ("vertices", "vertices", "%d"), ("status", "status", "%s"),
+TABLE_COLUMNS = (("mesh", "mesh", "%s"), ("target", "target", "%s"), ("vertices", "vertices", "%d"), ("status", "status", "%s"),
                  ("reason", "exit reason", "%s"), ("time_s", "time (s)", "%.2f"),
                  ("iterations", "iterations", "%d"), ("mean_abs_angle_diff_deg", "mean abs Δangle (°)", "%.2f"),
                  ("mean_abs_log_area", "mean abs log area ratio", "%.3f"), ("qc_mean", "QC mean", "%.3f"),
@@ -318,7 +322,8 @@ def _row_from_result(task, result, status, reason, elapsed):
     from .api import peak_rss_mb
 
     distortion = result.distortion() if result.success else {}
-    return {"mesh": task["name"], "input": task["input"], "vertices": int(len(result.vertices)),
+    return {"mesh": task["name"], "input": task["input"], "target": task["options"]["target"],
+            "vertices": int(len(result.vertices)),
             "status": status, "reason": reason, "time_s": round(elapsed, 3),
             "iterations": int(result.iterations),
             "mean_abs_angle_diff_deg": distortion.get("mean_abs_angle_diff_deg"),
@@ -331,7 +336,8 @@ def _row_from_result(task, result, status, reason, elapsed):
 def failure_row(task, status, reason, elapsed=None, vertices=None):
     """A summary row for a mesh that produced no sphere."""
     row = dict.fromkeys(SUMMARY_FIELDS)
-    row.update(mesh=task["name"], input=task["input"], vertices=vertices, status=status, reason=reason,
+    row.update(mesh=task["name"], input=task["input"], target=task["options"]["target"], vertices=vertices,
+               status=status, reason=reason,
                time_s=None if elapsed is None else round(elapsed, 3), resumed=False)
     return row
 
@@ -392,6 +398,21 @@ class _StopWatcher:
         self.done.set()
 
 
+def earlier_outputs(task):
+    """The files an earlier run wrote for this mesh that this run does not write (from its report):
+    left in place they would sit beside the new sphere as if they showed it."""
+    out = Path(task["out_dir"])
+    try:
+        earlier = json.loads((out / task["outputs"]["report"]).read_text())["batch"]["outputs"].values()
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return []
+    current, own = set(task["outputs"].values()), task["name"] + "."
+    # Only this mesh's own names (NAME.*) are taken from the report: never a file elsewhere.
+    return [out / name for name in earlier
+            if isinstance(name, str) and name not in current and name.startswith(own)
+            and "/" not in name[len(own):] and (out / name).is_file()]
+
+
 def _map_one(task):
     from .api import parameterize, solve_failure_message
 
@@ -400,6 +421,7 @@ def _map_one(task):
     outputs["report"].parent.mkdir(parents=True, exist_ok=True)
     options = task["options"]
     produced = [outputs["sphere"]] + ([outputs["png"]] if "png" in outputs else [])
+    earlier = earlier_outputs(task)
     batch_info = {"input": task["input"], "options": options, "outputs": task["outputs"],
                   "worker": "%s:%d" % (socket.gethostname(), os.getpid())}
     _reset_peak_memory()
@@ -424,7 +446,7 @@ def _map_one(task):
         with staged_outputs() as staged:
             write_json(outputs["report"], {"success": False, "status": status, "reason": reason,
                                            "batch": {**batch_info, "summary": row}})
-        return row, staged, produced
+        return row, staged, produced + earlier
     with staged_outputs() as staged:
         if result.success:
             result.write(outputs["sphere"])
@@ -444,7 +466,7 @@ def _map_one(task):
         report = result.report()
         report["batch"] = {**batch_info, "summary": row}
         write_json(outputs["report"], report)     # last: a report beside a sphere marks it done
-    return row, staged, [] if result.success else produced
+    return row, staged, earlier + ([] if result.success else produced)
 
 
 def finished_row(task):
@@ -454,6 +476,7 @@ def finished_row(task):
         report = json.loads((out / task["outputs"]["report"]).read_text())
         info = report["batch"]
         row = dict(info["summary"])
+        row.setdefault("target", info["options"].get("target"))      # summaries before the target column
         if not report.get("success") or row.get("status") not in CERTIFIED:
             return None
         if info.get("input") != task["input"] or {k: info.get(k) for k in ("input_size", "input_mtime_ns")} \
@@ -481,7 +504,7 @@ def plan(paths, out_dir, options, png=False, output_format="off"):
     for path, name in zip(paths, output_names(paths)):
         outputs = {"sphere": "%s.sphere.%s" % (name, output_format), "report": name + ".report.json"}
         if png:
-            outputs["png"] = name + ".png"
+            outputs["png"] = str(picture_name(outputs["sphere"]))
         vertices = count_vertices(path)
         tasks.append({"name": name, "input": str(path), "out_dir": str(out_dir), "outputs": outputs,
                       "options": dict(options), "vertices": vertices,
@@ -504,13 +527,13 @@ def markdown_table(rows):
 
     Examples
     --------
-    >>> print(markdown_table([{"mesh": "knight", "vertices": 502, "status": "certified",
+    >>> print(markdown_table([{"mesh": "knight", "target": "original-angles", "vertices": 502, "status": "certified",
     ...                        "reason": "Solve_Succeeded", "time_s": 0.8, "iterations": 30,
     ...                        "mean_abs_angle_diff_deg": 3.1, "mean_abs_log_area": 0.9, "qc_mean": 1.1,
     ...                        "peak_rss_mb": 118, "resumed": False}]))
-    | mesh | vertices | status | exit reason | time (s) | iterations | mean abs Δangle (°) | mean abs log area ratio | QC mean | peak RSS (MB) | resumed |
-    |---|---|---|---|---|---|---|---|---|---|---|
-    | knight | 502 | certified | Solve_Succeeded | 0.80 | 30 | 3.10 | 0.900 | 1.100 | 118 |  |
+    | mesh | target | vertices | status | exit reason | time (s) | iterations | mean abs Δangle (°) | mean abs log area ratio | QC mean | peak RSS (MB) | resumed |
+    |---|---|---|---|---|---|---|---|---|---|---|---|
+    | knight | original-angles | 502 | certified | Solve_Succeeded | 0.80 | 30 | 3.10 | 0.900 | 1.100 | 118 |  |
     """
     lines = ["| " + " | ".join(header for _, header, _ in TABLE_COLUMNS) + " |",
              "|" + "---|" * len(TABLE_COLUMNS)]
@@ -838,7 +861,7 @@ def _load_client(address):
 
 def map_meshes(paths, out_dir, target="original-angles", *, angle_weight=None, area_weight=None,
                formulation=DEFAULT_FORMULATION, max_iter=None, max_time=None, on_limit="fail",
-               output_format="off", png=False, png_measure="area", force=False, jobs=1, client=None,
+               output_format="off", png=False, png_measure=None, force=False, jobs=1, client=None,
                retries=1, progress=None, start=None):
     """Map every mesh of ``paths`` onto the sphere, writing into ``out_dir``; the summary rows.
 
@@ -854,7 +877,8 @@ def map_meshes(paths, out_dir, target="original-angles", *, angle_weight=None, a
     output_format : {"off", "obj", "ply"}
         Format of the spheres; OBJ carries texture coordinates.
     png : bool
-        Also write a picture per certified mesh, coloured by ``png_measure`` ("area" or "angle").
+        Also write a picture per certified mesh, coloured by ``png_measure`` ("area" or "angle"; by
+        default what the target mode does not optimise, as for a single mesh).
     force : bool
         Map every mesh again, even those already done by an earlier run.
     jobs : int or None
@@ -905,7 +929,7 @@ def map_meshes(paths, out_dir, target="original-angles", *, angle_weight=None, a
     if output_format not in OUTPUT_FORMATS:
         raise errors.UsageError("unknown output format %r; choose one of %s"
                                 % (output_format, ", ".join(OUTPUT_FORMATS)))
-    if png_measure not in ("area", "angle"):
+    if png_measure not in (None, "area", "angle"):
         raise errors.UsageError("unknown picture measure %r; choose area or angle" % png_measure)
     if jobs is not None and (not isinstance(jobs, int) or jobs < 1):
         raise errors.UsageError("jobs must be a positive integer (or None for one per core), not %r" % (jobs,))
@@ -1086,9 +1110,12 @@ def build_parser():
     out = parser.add_argument_group("outputs (per certified mesh)")
     out.add_argument("--format", choices=OUTPUT_FORMATS, default="off",
                      help="sphere format (default off); obj carries longitude/latitude texture coordinates")
-    out.add_argument("--png", action="store_true", help="also a picture NAME.png coloured by distortion")
-    out.add_argument("--png-measure", choices=("area", "angle"), default="area",
-                     help="colouring of the pictures (default area)")
+    out.add_argument("--png", action="store_true",
+                     help="also a picture beside each sphere, named after it (NAME.png), as the main command's "
+                          "--png")
+    out.add_argument("--png-measure", choices=("area", "angle"),
+                     help="colouring of the pictures (default: what the target mode does not optimise, "
+                          "angle distortion for the area modes, log area ratio for the angle modes)")
     method = parser.add_argument_group("method (as for a single mesh)")
     method.add_argument("--target", default="original-angles", choices=MODES, metavar="MODE",
                         help="%s (default: original-angles)" % ", ".join(MODES))

@@ -15,7 +15,6 @@ trimesh load afterwards.
 import argparse
 import math
 import os
-import re
 import signal
 import sys
 import time
@@ -23,8 +22,9 @@ import traceback
 from pathlib import Path
 
 from . import __version__, errors, interrupts
-from .commands import (PROG, SUBCOMMANDS, SafeStream, UsageParser, check_output_paths as _check_paths,
-                       subcommand_lines, subcommand_main, unknown_command, warnings_silenced)
+from .commands import (PROG, SUBCOMMANDS, UP_CHOICES, SafeStream, UsageParser, check_output_paths as _check_paths,
+                       join_negative_values, subcommand_lines, subcommand_main, unknown_command, view_argument,
+                       warnings_silenced)
 
 # SolverSettings' area_floor, repeated so that --help need not import numpy (tests/test_ux.py
 # checks that the two agree).
@@ -33,7 +33,7 @@ DEFAULT_AREA_FLOOR = 1e-12
 # Three runnable examples (tests/test_ux.py runs each of them).
 EXAMPLES = """examples:
   sphere-nlp models/cylinder.off
-  sphere-nlp models/cylinder.off -o cylinder.obj --png cylinder.png
+  sphere-nlp models/cylinder.off -o cylinder.obj --png
   sphere-nlp models/cylinder.off --target equal-areas --textured-input painted.obj --report run.json
 """
 
@@ -56,15 +56,17 @@ def build_parser():
                                             "longitude/latitude texture coordinates (default: <input name "
                                             "without its last extension>[.MODE unless the default]"
                                             ".sphere.off here)")
-    out.add_argument("--png", metavar="OUT.png",
-                     help="picture: mesh and sphere coloured by distortion, mesh checkerboarded")
+    out.add_argument("--png", action="store_true",
+                     help="picture beside the sphere, named after it (-o cyl.obj: cyl.png; bunny.sphere.off: "
+                          "bunny.png), as in batch: mesh and sphere coloured by distortion, mesh checkerboarded; "
+                          "'%s picture MESH SPHERE' redraws it later without solving" % PROG)
     out.add_argument("--png-measure", choices=("area", "angle"),
                      help="colouring of the picture: log area ratio or angle distortion (default: the "
                           "one the target mode does not optimise)")
-    out.add_argument("--view", metavar="AZ,EL", type=_view,
+    out.add_argument("--view", metavar="AZ,EL", type=view_argument,
                      help="camera azimuth and elevation of the picture, degrees, e.g. --view -60,20 "
                           "(default: the side with the most projected area)")
-    out.add_argument("--up", choices=("x", "y", "z", "+x", "+y", "+z", "-x", "-y", "-z"), metavar="AXIS",
+    out.add_argument("--up", choices=UP_CHOICES, metavar="AXIS",
                      help="the input's up axis in the picture: x, y, z, or --up=-z (default: detected)")
     out.add_argument("--textured-input", metavar="OUT.obj",
                      help="the input mesh with the sphere's texture coordinates, to paint or texture")
@@ -247,25 +249,6 @@ def floor_note(result, corner_floor, area_floor=None):
             "lower bound that keeps triangles usable)")
 
 
-def _view(text):
-    """``AZ,EL`` in degrees, for --view: a finite azimuth and an elevation in [-90, 90] (a NaN
-    camera draws blank panels).
-
-    >>> _view("-60,20")
-    (-60.0, 20.0)
-    """
-    try:
-        azimuth, elevation = (float(word) for word in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError("expected AZIMUTH,ELEVATION in degrees, e.g. -60,20; got %r" % text)
-    if not (math.isfinite(azimuth) and math.isfinite(elevation)):
-        raise argparse.ArgumentTypeError("the azimuth and elevation must be finite numbers of degrees, "
-                                         "not %r" % text)
-    if not -90 <= elevation <= 90:
-        raise argparse.ArgumentTypeError("the elevation must be between -90 and 90 degrees, not %g" % elevation)
-    return azimuth, elevation
-
-
 def _check_suffix(path, suffix, what):
     if path and Path(path).suffix.lower() != suffix:
         raise errors.UsageError("cannot write %s: %s must end in %s" % (path, what, suffix))
@@ -295,29 +278,6 @@ def check_output_paths(input_path, outputs):
     """Raise UsageError unless every output can be written, before anything is solved
     (:func:`sphere_nlp.commands.check_output_paths` with the input mesh as the one input)."""
     _check_paths([("the input file", input_path)], outputs)
-
-
-# Options whose value may start with "-" (a negative azimuth): argparse would take "-60,20" for an
-# option, so "--view -60,20" becomes "--view=-60,20" before parsing.
-NEGATIVE_VALUE_OPTIONS = ("--view",)
-_NUMBERS = re.compile(r"-[0-9.]+(e[-+]?[0-9]+)?(,[-+]?[0-9.]+(e[-+]?[0-9]+)?)*", re.I)
-
-
-def join_negative_values(argv):
-    """``argv`` with ``--view -60,20`` written ``--view=-60,20`` (see NEGATIVE_VALUE_OPTIONS).
-
-    >>> join_negative_values(["m.off", "--view", "-60,20", "-q"])
-    ['m.off', '--view=-60,20', '-q']
-    """
-    joined, k = [], 0
-    while k < len(argv):
-        if argv[k] in NEGATIVE_VALUE_OPTIONS and k + 1 < len(argv) and _NUMBERS.fullmatch(argv[k + 1]):
-            joined.append("%s=%s" % (argv[k], argv[k + 1]))
-            k += 2
-        else:
-            joined.append(argv[k])
-            k += 1
-    return joined
 
 
 def _seconds(text):
@@ -395,6 +355,30 @@ def failure_line(result, report=None):
     return why + ("; nothing written but the report %s" % report if report else "; nothing written")
 
 
+def picture_name(sphere_path):
+    """Where --png writes: :func:`sphere_nlp.picture.picture_name` (repeated here so that --help
+    need not import numpy; a doctest keeps the two alike).
+
+    >>> from sphere_nlp import picture
+    >>> all(picture_name(p) == picture.picture_name(p) for p in ("a/b.sphere.off", "c.obj", "d.x.sphere.ply"))
+    True
+    """
+    path = Path(sphere_path)
+    stem = path.stem[:-len(".sphere")] if path.stem.endswith(".sphere") else path.stem
+    return path.with_name((stem or path.stem) + ".png")
+
+
+def png_given_a_name(argv):
+    """A UsageError for ``--png NAME.png`` (--png takes no name: the picture goes beside the sphere),
+    or None; argparse would only call the name an unrecognized argument."""
+    for option, value in zip(argv, argv[1:]):
+        if option == "--png" and value.lower().endswith(".png"):
+            return errors.UsageError("--png takes no file name: the picture goes beside the sphere, named after "
+                                     "it (for %s, give the sphere that name: -o %s)"
+                                     % (value, Path(value).with_suffix(".off")))
+    return None
+
+
 def run(args, progress):
     from .api import parameterize
     from .mesh_io import check_mesh_path, load_mesh, output_transaction
@@ -404,7 +388,6 @@ def run(args, progress):
     # Every option and output path is checked before the (possibly long) solve.
     check_arguments(args)
     check_mesh_path(output)
-    _check_suffix(args.png, ".png", "a picture")
     _check_suffix(args.textured_input, ".obj", "a textured mesh")
     _check_suffix(args.texture, ".png", "a texture")
     _check_suffix(args.save_distortion, ".npz", "a distortion file")
@@ -412,8 +395,9 @@ def run(args, progress):
     if args.texture and not is_obj and not args.textured_input:
         raise errors.UsageError("--texture needs an OBJ output (-o X.obj or --textured-input X.obj)")
     outputs = [("-o" if args.output else "the default output", output)]
+    png = picture_name(output) if args.png else None
     outputs += [(option, Path(path)) for option, path in
-                (("--png", args.png), ("--textured-input", args.textured_input),
+                (("--png", png), ("--textured-input", args.textured_input),
                  ("--save-solution", args.save_solution), ("--save-distortion", args.save_distortion),
                  ("--report", args.report)) if path]
     # The texture image goes beside each OBJ written (one file when both OBJs share a folder).
@@ -472,7 +456,7 @@ def run(args, progress):
             result.save_distortion(args.save_distortion)
         if args.png:
             progress.stage("write (picture)")
-            result.write_png(args.png, measure=args.png_measure, view=args.view, up=args.up)
+            result.write_png(png, measure=args.png_measure, view=args.view, up=args.up)
         if args.report:
             result.write_report(args.report)
         _write_hook("staged")
@@ -520,6 +504,9 @@ def main(argv=None):
         stderr.write("%s: error: %s\n" % (PROG, unknown))
         return unknown.exit_status
     try:
+        named_png = png_given_a_name(argv)
+        if named_png is not None:
+            raise named_png
         parser = build_parser()
         args = parser.parse_args(join_negative_values(argv))
     except errors.UsageError as exc:

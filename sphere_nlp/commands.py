@@ -20,7 +20,9 @@ True
 import argparse
 import difflib
 import importlib
+import math
 import os
+import re
 import signal
 import sys
 import tempfile
@@ -46,6 +48,8 @@ SUBCOMMANDS = {
                  "carry per-vertex values of one shape to another through their sphere maps"),
     "morph": ("sphere_nlp.resample", "morph_main",
               "in-between shapes from one mesh to another through their sphere maps"),
+    "picture": ("sphere_nlp.picture", "main",
+                "draw the picture of a map written earlier (a mesh and its sphere), without solving"),
 }
 
 
@@ -281,3 +285,51 @@ def check_output_folder(option, folder):
         raise errors.UsageError("cannot create %s %s: %s is a file" % (option, folder, existing))
     if not os.access(existing, os.W_OK | os.X_OK):
         raise errors.UsageError("cannot write to %s %s: permission denied (%s)" % (option, folder, existing))
+
+
+# ------------------------------------------------------------------------------ picture options
+# Shared by the main command and ``picture``: both draw the same picture from the same options.
+
+UP_CHOICES = ("x", "y", "z", "+x", "+y", "+z", "-x", "-y", "-z")
+
+
+def view_argument(text):
+    """``AZ,EL`` in degrees, for --view: a finite azimuth and an elevation in [-90, 90] (a NaN
+    camera draws blank panels).
+
+    >>> view_argument("-60,20")
+    (-60.0, 20.0)
+    """
+    try:
+        azimuth, elevation = (float(word) for word in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError("expected AZIMUTH,ELEVATION in degrees, e.g. -60,20; got %r" % text)
+    if not (math.isfinite(azimuth) and math.isfinite(elevation)):
+        raise argparse.ArgumentTypeError("the azimuth and elevation must be finite numbers of degrees, "
+                                         "not %r" % text)
+    if not -90 <= elevation <= 90:
+        raise argparse.ArgumentTypeError("the elevation must be between -90 and 90 degrees, not %g" % elevation)
+    return azimuth, elevation
+
+
+# Options whose value may start with "-" (a negative azimuth): argparse would take "-60,20" for an
+# option, so "--view -60,20" becomes "--view=-60,20" before parsing.
+NEGATIVE_VALUE_OPTIONS = ("--view",)
+_NUMBERS = re.compile(r"-[0-9.]+(e[-+]?[0-9]+)?(,[-+]?[0-9.]+(e[-+]?[0-9]+)?)*", re.I)
+
+
+def join_negative_values(argv):
+    """``argv`` with ``--view -60,20`` written ``--view=-60,20`` (see NEGATIVE_VALUE_OPTIONS).
+
+    >>> join_negative_values(["m.off", "--view", "-60,20", "-q"])
+    ['m.off', '--view=-60,20', '-q']
+    """
+    joined, k = [], 0
+    while k < len(argv):
+        if argv[k] in NEGATIVE_VALUE_OPTIONS and k + 1 < len(argv) and _NUMBERS.fullmatch(argv[k + 1]):
+            joined.append("%s=%s" % (argv[k], argv[k + 1]))
+            k += 2
+        else:
+            joined.append(argv[k])
+            k += 1
+    return joined

@@ -14,15 +14,19 @@ Choices that make the picture say something:
 * **Upright.** Meshes come Y-up (most graphics meshes: Stanford scans, OBJ exports) or Z-up (CAD,
   scans of busts, medical data), and the picture draws the mesh's up axis up. Unless given
   (``up="y"``, ``"-z"``, a vector), :func:`detect_up` finds it: the axis pointing away from a flat
-  base (a bust's cut, a pedestal, a cylinder's cap) when there is one, else +Y.
+  base (a bust's cut, a pedestal, a cylinder's cap) when there is one, else away from the feet of
+  three or more legs (an animal, whichever axis it was modelled along), else +Y.
 * **View.** Unless one is given, the camera looks from the direction, level or from above, in which
   the upright mesh shows the most projected area (:func:`best_view`), so a model is seen from its
   broad side, not end-on.
-* **Colour scale.** One linear scale with labelled ticks: symmetric about 0 for the signed log area
-  ratio (white = a triangle keeping its share of the surface), from 0 for the angle distortion. It
-  reaches the larger side of the 2nd..98th area-weighted percentiles, rounded up to a tick
-  (:func:`colour_range`); the share of the surface beyond it is stated under the colour bar, so a few
-  extreme slivers cannot wash the picture out.
+* **Colour scale.** Labelled ticks that name its range: from 0 for the angle distortion; for the
+  signed log area ratio white at 0 (a triangle keeping its share of the surface), symmetric unless
+  one side reaches less than half as far as the other, then each side on its own linear scale (a
+  default-mode map shrinks limbs by e^-15 and grows the body by e^1: on a +-15 scale the sphere,
+  all body, would be white). The scale reaches the 2nd and 98th percentiles of what the panels
+  show (mesh and sphere areas), rounded up to a tick (:func:`colour_range`); the share of the
+  surface beyond it is stated under the colour bar, so a few extreme slivers cannot wash the
+  picture out.
 * **Checkerboard.** The colours of the texture written beside OBJ files
   (:data:`sphere_nlp.texture.CHECKER_COLOURS`), so the picture shows what a viewer shows. Each
   triangle is cut exactly along the checker lines in its (u, v) (linear in the triangle, as a
@@ -51,6 +55,10 @@ UP_AXES = ("+x", "+y", "+z", "-x", "-y", "-z")     # detect_up's answers, in its
 FLAT_BASE_SHARE = 0.02               # a flat base holds at least this share of the surface ...
 FLAT_BASE_BAND = 0.005               # ... within this fraction of the mesh's size of its lowest point
 FLAT_BASE_COS = np.cos(np.radians(5.0))      # ... facing within 5 degrees of straight down
+# Legs are looked for in the lowest 10% of the height: there a standing animal's legs are separate
+# columns (cat, koala, spot), while at a quarter of the height a cow's belly already joins them.
+LEG_SLAB = 0.1
+LEG_REACH = 0.2                      # a leg reaches within this share of the slab of its floor and top
 
 
 def triangle_measure(mesh_vertices, sphere_vertices, faces, measure="area"):
@@ -150,15 +158,70 @@ def flat_base_shares(vertices, faces):
     return np.array(shares)
 
 
+def standing_legs(vertices, faces):
+    """Per direction of :data:`UP_AXES`: how many legs the mesh would stand on if that direction
+    were up, (6,) ints (0 when it would not stand).
+
+    A leg is a separate piece of the surface in the lowest 10% of the height that crosses that slab,
+    from near the floor to near its top (a column, not a bump of a back lying on the floor). The
+    mesh stands when at least three legs hold its area centroid above the polygon of their feet.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    vertices, faces = np.asarray(vertices, float), np.asarray(faces, np.int64)
+    triangles = vertices[faces]
+    areas = np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1)
+    centroid = (triangles.mean(axis=1) * areas[:, None]).sum(axis=0) / max(areas.sum(), 1e-300)
+    edges = np.r_[faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]
+    legs = []
+    for axis in UP_AXES:
+        up = up_vector(axis)
+        height = vertices @ up
+        floor = height.min()
+        slab = LEG_SLAB * max(np.ptp(height), 1e-300)
+        low = height < floor + slab
+        kept = edges[(low[faces].all(axis=1))[np.arange(len(edges)) % len(faces)]]
+        graph = coo_matrix((np.ones(len(kept)), (kept[:, 0], kept[:, 1])), shape=(len(vertices),) * 2)
+        _, labels = connected_components(graph, directed=False)
+        in_slab = np.zeros(len(vertices), bool)
+        in_slab[kept.ravel()] = True
+        pieces = labels[in_slab]
+        lowest = np.full(labels.max() + 1, np.inf)
+        highest = np.full(labels.max() + 1, -np.inf)
+        np.minimum.at(lowest, pieces, height[in_slab])
+        np.maximum.at(highest, pieces, height[in_slab])
+        columns = np.flatnonzero((lowest < floor + LEG_REACH * slab) & (highest > floor + (1 - LEG_REACH) * slab))
+        feet = np.array([vertices[in_slab][pieces == c].mean(axis=0) for c in columns]).reshape(-1, 3)
+        basis = np.linalg.svd(np.eye(3) - np.outer(up, up))[0][:, :2]
+        standing = len(columns) >= 3 and _inside_hull(feet @ basis, centroid @ basis)
+        legs.append(len(columns) if standing else 0)
+    return np.array(legs)
+
+
+def _inside_hull(points, point):
+    """Whether ``point`` lies inside the convex hull of the 2D ``points`` (False when they are collinear)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(points)
+    except (QhullError, ValueError):
+        return False
+    return bool((hull.equations[:, :2] @ point + hull.equations[:, 2] <= 1e-12).all())
+
+
 def detect_up(vertices, faces):
     """The mesh's up axis, one of :data:`UP_AXES`.
 
     A mesh with a flat base (a bust's cut, a pedestal, a cylinder's cap: at least 2% of the surface
     flat at the bottom, :func:`flat_base_shares`) stands on it; of several within 10% of the largest,
-    the first in :data:`UP_AXES` (+Y before +Z, + before -). Without one, +Y: the convention of most
-    graphics meshes (the Stanford bunny and armadillo, spot, meshes exported as OBJ), whose feet,
-    paws and hooves are rarely flat. Z-up meshes without a flat base (FreeSurfer's cortical surfaces,
-    in RAS coordinates) need ``up="z"``.
+    the first in :data:`UP_AXES` (+Y before +Z, + before -). Else an animal stands on its legs: the
+    direction in which the most legs (at least three) hold it up (:func:`standing_legs`), first in
+    :data:`UP_AXES` on a tie, so a cat or a koala modelled Z-up, or lying along any axis, is drawn
+    standing. Else +Y: the convention of most graphics meshes (the Stanford bunny and armadillo,
+    meshes exported as OBJ); two-legged figures are left to it, since a figure lying on its back
+    has two columns (its heels) as well. Z-up meshes without a flat base or legs (FreeSurfer's
+    cortical surfaces, in RAS coordinates) need ``up="z"``.
 
     Examples
     --------
@@ -170,9 +233,12 @@ def detect_up(vertices, faces):
     '+y'
     """
     shares = flat_base_shares(vertices, faces)
-    if shares.max() < FLAT_BASE_SHARE:
-        return "+y"
-    return UP_AXES[int(np.flatnonzero(shares >= 0.9 * shares.max())[0])]
+    if shares.max() >= FLAT_BASE_SHARE:
+        return UP_AXES[int(np.flatnonzero(shares >= 0.9 * shares.max())[0])]
+    legs = standing_legs(vertices, faces)
+    if legs.max() >= 3:
+        return UP_AXES[int(np.argmax(legs))]
+    return "+y"
 
 
 def upright_rotation(up):
@@ -318,14 +384,27 @@ def tick_step(extent, per_side=3):
     return float(np.round(step, 12))
 
 
-def colour_range(values, weights, measure):
-    """(low, high, ticks, clipped share): one linear colour scale for a measure.
+def _side(reach):
+    """(end, ticks from 0 out) of one side of a colour scale reaching ``reach`` >= 0: the reach
+    rounded up to a round step (:func:`tick_step`), two or three steps from 0."""
+    step = tick_step(reach)
+    steps = int(np.ceil(reach / step - 1e-9))
+    return float(np.round(steps * step, 12)), [float(np.round(k * step, 12)) for k in range(1, steps + 1)]
 
-    The scale reaches the larger side of the weighted 2nd..98th percentile range, rounded up to a
-    round tick step (:func:`tick_step`); it is symmetric about 0 for the signed log area ratio (so
-    equal colours mean equal factors of growth and shrinkage) and starts at 0 for the angle
-    distortion. ``ticks`` are evenly spaced, 0 among them; the share is that of the weight beyond
-    the scale.
+
+def colour_range(values, weights, measure, shown=None):
+    """(low, high, ticks, clipped share): the colour scale of a measure.
+
+    The scale reaches the weighted 2nd and 98th percentiles, each rounded up to a round tick step
+    (:func:`tick_step`). The angle distortion's starts at 0. The signed log area ratio's has 0
+    (white: a triangle keeping its share of the surface) in its middle and is symmetric (equal
+    colours, equal factors of growth and shrinkage) unless one side reaches less than half as far as
+    the other: then each side has its own range, so a default-mode map whose limbs shrink by e^-15
+    while its body grows by e^1 shows the body in red instead of washing it out on a +-15 scale;
+    the colour bar's ticks name both ends. Neither side reaches less than a tenth of the other.
+    The percentiles are taken with the ``shown`` weights (by default ``weights``: give what both
+    panels show, the mesh's and the sphere's areas, so neither panel is left blank); the clipped
+    share is that of ``weights`` beyond the scale. ``ticks`` are evenly spaced on each side, 0 among them.
 
     Examples
     --------
@@ -333,24 +412,31 @@ def colour_range(values, weights, measure):
     >>> low, high, ticks, share = colour_range(v, np.ones(100), "area")
     >>> low, high, ticks, share
     (-1.0, 1.0, [-1.0, -0.5, 0.0, 0.5, 1.0], 0.02)
+    >>> colour_range(np.linspace(-14, 1.2, 100), np.ones(100), "area")[:3]      # two-sided
+    (-15.0, 1.5, [-15.0, -10.0, -5.0, 0.0, 0.5, 1.0, 1.5])
     >>> colour_range(np.r_[np.zeros(50), np.full(50, 4.0)], np.ones(100), "angle")[:3]
     (0.0, 4.0, [0.0, 2.0, 4.0])
     """
     values, weights = np.asarray(values, float), np.asarray(weights, float)
+    shown = weights if shown is None else np.asarray(shown, float)
     finite = np.isfinite(values)
     if finite.any():
-        values, weights = values[finite], weights[finite]
-        quantiles = [weighted_percentile(values, weights, q) for q in COLOUR_PERCENTILES]
+        quantiles = [weighted_percentile(values[finite], shown[finite], q) for q in COLOUR_PERCENTILES]
     else:
         quantiles = [0.0, 0.0]
-    reach = max(abs(quantiles[0]) if measure == "area" else 0.0, quantiles[1], 1e-3)
-    step = tick_step(reach)
-    steps = int(np.ceil(reach / step - 1e-9))
-    high = float(np.round(steps * step, 12))
-    low = -high if measure == "area" else 0.0
-    ticks = [float(np.round(k * step, 12)) for k in range(-steps if measure == "area" else 0, steps + 1)]
-    ticks = [0.0 if t == 0 else t for t in ticks]
-    beyond = weights[(values < low) | (values > high)].sum() if finite.any() else 0.0
+    if measure == "area":
+        below, above = max(-quantiles[0], 1e-3), max(quantiles[1], 1e-3)
+        larger = max(below, above)
+        if min(below, above) >= larger / 2:
+            below = above = larger
+        below, above = max(below, larger / 10), max(above, larger / 10)
+        low, low_ticks = _side(below)
+        high, high_ticks = _side(above)
+        low, ticks = -low, [-t for t in low_ticks[::-1]] + [0.0] + high_ticks
+    else:
+        high, high_ticks = _side(max(quantiles[1], 1e-3))
+        low, ticks = 0.0, [0.0] + high_ticks
+    beyond = weights[finite][(values[finite] < low) | (values[finite] > high)].sum()
     return low, high, ticks, float(beyond / max(weights.sum(), 1e-300))
 
 
@@ -471,7 +557,7 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
+    from matplotlib.colors import Normalize, TwoSlopeNorm
     from matplotlib.figure import Figure
 
     from .metrics import normalised_areas_3d
@@ -490,8 +576,14 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
                              "[-90, 90]; got %r" % (view,))
     label, colour_map_name = MEASURES[measure]
     values = triangle_measure(mesh_vertices, sphere_vertices, faces, measure)
-    low, high, ticks, clipped = colour_range(values, normalised_areas_3d(mesh_vertices, faces), measure)
-    norm = Normalize(low, high)
+    mesh_share = normalised_areas_3d(mesh_vertices, faces)
+    # What the two panels show: each triangle with its mesh share and its sphere share (the mesh's
+    # times the area ratio), so that the body filling a default-mode map's sphere gets colours.
+    sphere_share = mesh_share * np.exp(np.clip(np.nan_to_num(values, nan=0.0, neginf=-700.0), -700, 700)) \
+        if measure == "area" else mesh_share
+    low, high, ticks, clipped = colour_range(values, mesh_share, measure,
+                                             shown=mesh_share / mesh_share.sum() + sphere_share / sphere_share.sum())
+    norm = TwoSlopeNorm(0.0, low, high) if measure == "area" else Normalize(low, high)
     colour_map = matplotlib.colormaps[colour_map_name]
     colours = colour_map(norm(np.nan_to_num(values, nan=0.0)))
 
@@ -525,7 +617,10 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
                        extend="both" if measure == "area" else "max")
     bar.set_ticks(ticks)
     bar.ax.xaxis.set_major_formatter("{x:g}")
-    bar.set_label("%s; %.1f%% of the surface beyond the range" % (label, 100 * clipped), fontsize=11)
+    two_sided = measure == "area" and low != -high
+    bar.set_label("%s from %g to %g%s; %.1f%% of the surface beyond the range"
+                  % (label, low, high, " (each side of 0 on its own scale)" if two_sided else "", 100 * clipped),
+                  fontsize=11)
     fig.text(0.56, 0.085, "up: %s%s; view: azimuth %g°, elevation %g°"
              % ((up_text, " (detected)" if detected else "") + view), fontsize=10)
     if title:
@@ -534,3 +629,110 @@ def render_png(path, mesh_vertices, sphere_vertices, faces, measure="area", titl
         fig.savefig(out, format="png")
     return {"colour_limits": (low, high), "colour_ticks": ticks, "clipped_share": clipped,
             "up": up_text, "view": view, "drawn": drawn, "checker_pieces": len(polygons)}
+
+
+# A map whose triangles are on average within this |log area ratio| of their share of the sphere
+# keeps the areas (an area mode's map: about 0.01-0.03), so its picture shows the angles it pays.
+AREA_KEPT_MEAN_ABS_LOG = 0.05
+
+
+def measure_for_map(mesh_vertices, sphere_vertices, faces):
+    """The measure a picture of a map of unknown mode shows: "angle" when the map keeps the areas
+    (mean |log area ratio| below :data:`AREA_KEPT_MEAN_ABS_LOG`), else "area" (what a map in an
+    angle mode pays), as :func:`default_measure` chooses from a mode.
+
+    >>> from sphere_nlp.shapes import icosphere
+    >>> V, F = icosphere(2)
+    >>> measure_for_map(V, V, F), measure_for_map(V * [1, 1, 3], V, F)
+    ('angle', 'area')
+    """
+    from .metrics import area_log_ratio, normalised_areas_3d
+
+    log_area = area_log_ratio(mesh_vertices, sphere_vertices, faces)
+    weights = normalised_areas_3d(mesh_vertices, faces)
+    finite = np.isfinite(log_area)
+    mean = (np.abs(log_area[finite]) * weights[finite]).sum() / max(weights[finite].sum(), 1e-300)
+    return "angle" if mean < AREA_KEPT_MEAN_ABS_LOG else "area"
+
+
+def picture_name(sphere_path):
+    """Where a picture of the map in ``sphere_path`` goes by default: beside it, named after it
+    without ``.sphere`` and its extension (``out/bunny.sphere.off`` -> ``out/bunny.png``,
+    ``bunny.original-areas.sphere.off`` -> ``bunny.original-areas.png``, ``cyl.obj`` -> ``cyl.png``),
+    so a picture carries the mode its sphere's name carries.
+
+    >>> str(picture_name("out/bunny.original-areas.sphere.off")), str(picture_name("cyl.obj"))
+    ('out/bunny.original-areas.png', 'cyl.png')
+    """
+    from pathlib import Path
+
+    path = Path(sphere_path)
+    stem = path.stem[:-len(".sphere")] if path.stem.endswith(".sphere") else path.stem
+    return path.with_name((stem or path.stem) + ".png")
+
+
+def main(argv=None):
+    """``sphere-nlp picture MESH SPHERE [-o OUT.png]``: redraw a map written earlier, without solving."""
+    import sys
+    from pathlib import Path
+
+    from .commands import (UP_CHOICES, check_output_paths, join_negative_values, run_subcommand,
+                           subcommand_parser, view_argument)
+    from .errors import UsageError
+
+    parser = subcommand_parser(
+        "picture",
+        description="Draw the picture of a map written earlier (MESH and its SPHERE, same faces), without "
+                    "solving: mesh and sphere coloured by distortion, and the mesh checkerboarded.",
+        epilog="example:\n  sphere-nlp bunny.off\n  sphere-nlp picture bunny.off bunny.sphere.off --up y "
+               "--view -60,20")
+    parser.add_argument("mesh", metavar="MESH", help="the mesh that was mapped")
+    parser.add_argument("sphere", metavar="SPHERE",
+                        help="its sphere (the main command's output, or any with the same vertices and faces; "
+                             "any radius, centred at the origin)")
+    parser.add_argument("-o", "--output", metavar="OUT.png",
+                        help="the picture (default: beside SPHERE, named after it: bunny.sphere.off -> bunny.png)")
+    parser.add_argument("--png-measure", "--measure", dest="measure", choices=tuple(MEASURES),
+                        help="colouring: log area ratio or angle distortion (default: angle when the map keeps "
+                             "the areas, else area)")
+    parser.add_argument("--view", metavar="AZ,EL", type=view_argument,
+                        help="camera azimuth and elevation, degrees (default: the side with the most projected area)")
+    parser.add_argument("--up", choices=UP_CHOICES, metavar="AXIS",
+                        help="the mesh's up axis: x, y, z, or --up=-z (default: detected)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+
+    def check(args):
+        from .resample import _check_inputs, checked_sphere
+
+        option = "-o" if args.output else "the default output"
+        args.output = Path(args.output) if args.output else picture_name(args.sphere)
+        _check_inputs(args.mesh, args.sphere)
+        check_output_paths([("the input mesh", args.mesh), ("the sphere", args.sphere)],
+                           [(option, args.output)])
+        if args.output.suffix.lower() != ".png":
+            raise UsageError("cannot write %s: a picture must end in .png" % args.output)
+        # The sphere is read, matched to the mesh and certified before anything is drawn.
+        args.map, args.note = checked_sphere(args.mesh, args.sphere)
+
+    def body(args, say):
+        from .mesh_io import output_transaction
+        from .metrics import distortion_summary
+
+        if args.note:
+            say(args.note)
+        X, S, F = args.map
+        X = _normalised(X)
+        measure = args.measure or measure_for_map(X, S, F)
+        summary = distortion_summary(X, S, F)
+        title = ("%s: %d vertices, mean angle distortion %.1f°, mean |log area ratio| %.3f"
+                 % (Path(args.sphere).name, len(S), summary["mean_abs_angle_diff_deg"], summary["mean_abs_log_area"]))
+        with output_transaction():
+            info = render_png(args.output, X, S, F, measure=measure, title=title, view=args.view, up=args.up)
+        low, high = info["colour_limits"]
+        say("wrote %s: coloured by %s from %g to %g; up %s%s, view azimuth %g°, elevation %g°"
+            % (args.output, MEASURES[measure][0], low, high, info["up"], " (detected)" if args.up is None else "",
+               *info["view"]))
+        return 0
+
+    return run_subcommand(parser, join_negative_values(list(sys.argv[1:] if argv is None else argv)), body,
+                          check=check, interrupted="nothing written", failed="nothing written")

@@ -267,7 +267,7 @@ COLLAPSING_LIMBS = dict(n_limbs=4, radius=0.1, length_ratios=(45, 60), subdivisi
 
 
 def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions=5, n_claws=2,
-                claw_length=2.0, taper=1.0, tail_ratio=None, tail_taper=0.99):
+                claw_length=2.0, taper=1.0, tail_ratio=None, tail_taper=0.99, directions=None):
     """A round body with ``n_limbs`` long limbs, some ending in claws: the shape of a scanned animal.
 
     The body is an icosphere of radius 1 (``subdivisions``). Each limb replaces the cap of the
@@ -280,12 +280,14 @@ def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions
     of the tip's vertices pulled out by ``claw_length`` (x the limb's radius) along the limb, each
     a spike of needle triangles. With ``tail_ratio``, one more limb of that length over its radius
     whose cross-section narrows by ``tail_taper`` a ring: a tail, thinner the further it goes.
+    ``directions`` (n_limbs + 1 with a tail, 3) places the limbs instead of the lattice.
     Closed, genus 0, outward-oriented and a function of the arguments;
     vertices about 10 x 4**subdivisions plus the tubes' (subdivisions 5 and the defaults: ~28k).
 
     The conformal factor of a limb falls as exp(-length / radius) or faster along it: the
     default mode shrinks its tip to 1e-9 and less of its share, where the area floor binds.
     """
+    given_directions = directions
     V, F = icosphere(subdivisions)
     n_body, V, F = len(V), list(V), F.copy()
     n_tails = 0 if tail_ratio is None else 1
@@ -293,6 +295,9 @@ def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions
     z = 1 - 2 * k / (n_limbs + n_tails)
     phi = np.pi * (1 + 5 ** 0.5) * k
     directions = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
+    if given_directions is not None:
+        directions = np.asarray(given_directions, float)
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     ratios = np.r_[np.linspace(length_ratios[0], length_ratios[-1], n_limbs), [tail_ratio] * n_tails]
     tapers = np.r_[np.full(n_limbs, taper), [tail_taper] * n_tails]
     edge = np.sqrt(4 * (4 * np.pi / len(F)) / np.sqrt(3))           # the body's mean edge length
@@ -350,3 +355,14 @@ def limbed_body(n_limbs=6, radius=0.15, length_ratios=(10.0, 30.0), subdivisions
     used = np.zeros(len(V), bool)
     used[F.ravel()] = True
     return V[used], (np.cumsum(used) - 1)[F]
+
+
+def four_legged_body(subdivisions=3, leg_ratio=10.0):
+    """An animal standing on four legs, Z up: a round body (radius 1) on four straight legs
+    splayed 30 degrees from straight down, ``leg_ratio`` times as long as their radius 0.15, and a
+    tail rising behind (:func:`limbed_body` with its limbs placed). About 800 vertices at
+    ``subdivisions`` 3."""
+    down, splay = np.cos(np.radians(30.0)), np.sin(np.radians(30.0)) / np.sqrt(2)
+    legs = [[sx * splay, sy * splay, -down] for sx in (1, -1) for sy in (1, -1)]
+    return limbed_body(n_limbs=4, length_ratios=(leg_ratio, leg_ratio), subdivisions=subdivisions, n_claws=0,
+                       tail_ratio=8.0, directions=legs + [[-1.0, 0.0, 0.8]])

@@ -111,6 +111,35 @@ def test_batch_cli_jobs_resumption_and_force(tmp_path, capsys):
     assert (out / "icosphere.sphere.obj").stat().st_mtime_ns > stamps["icosphere.sphere.obj"]
 
 
+def test_batch_summaries_name_the_mode_and_a_rerun_leaves_no_output_of_the_earlier_map(tmp_path, capsys):
+    out = tmp_path / "out"
+    cylinder = str(MODELS / "cylinder.off")
+    assert batch_main([cylinder, "--out", str(out), "--png", "-q"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["cylinder.png", "cylinder.report.json", "cylinder.sphere.off",
+                                                      "summary.csv", "summary.md"]
+
+    def summary():
+        with open(out / "summary.csv") as handle:
+            rows = list(csv.DictReader(handle))
+        table = (out / "summary.md").read_text().splitlines()
+        header = [cell.strip() for cell in table[2].strip("|").split("|")]
+        cells = [cell.strip() for cell in table[4].strip("|").split("|")]
+        return rows[0]["target"], dict(zip(header, cells))["target"]
+
+    assert summary() == ("original-angles", "original-angles")
+    # Another mode without --png: the picture showed the earlier map, so it goes with it.
+    assert batch_main([cylinder, "--out", str(out), "--target", "original-areas", "-q"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["cylinder.report.json", "cylinder.sphere.off",
+                                                      "summary.csv", "summary.md"]
+    assert summary() == ("original-areas", "original-areas")
+    assert json.loads((out / "cylinder.report.json").read_text())["target"] == "original-areas"
+    # Resumed rows carry their mode too.
+    assert batch_main([cylinder, "--out", str(out), "--target", "original-areas", "-q"]) == 0
+    assert summary() == ("original-areas", "original-areas")
+    with open(out / "summary.csv") as handle:
+        assert next(csv.DictReader(handle))["resumed"] == "True"
+
+
 def test_batch_exit_status_1_when_a_mesh_fails_and_2_for_bad_usage(tmp_path, capsys):
     inputs = small_meshes(tmp_path / "in")
     assert batch_main([str(inputs / "torus.off"), str(inputs / "cylinder.off"), "--out", str(tmp_path / "out")]) == 1

@@ -83,7 +83,7 @@ def test_a_signal_at_a_random_moment_of_the_first_second_ends_the_run_with_nothi
         first = (signal.SIGINT, signal.SIGTERM)[k % 2]
         second = (None, signal.SIGINT, signal.SIGTERM)[k % 3]
         process = subprocess.Popen(command(mesh, "--target", "equal-areas", "-o", "out.off", "--report", "r.json",
-                                           "--png", "p.png"), cwd=folder, env=env(),
+                                           "--png"), cwd=folder, env=env(),
                                    stderr=subprocess.PIPE, text=True)
         time.sleep(rng.uniform(0.0, 1.0))
         ready = handler_installed(process.pid)
@@ -259,7 +259,7 @@ def test_help_lists_every_subcommand_and_a_misspelt_one_gets_a_suggestion(capsys
     help_text = subprocess.run(command("--help"), capture_output=True, text=True, env=env()).stdout
     for name in SUBCOMMANDS:
         assert any(line.split()[:1] == [name] and len(line.split()) > 3 for line in help_text.splitlines()), name
-    assert set(SUBCOMMANDS) == {"reproduce", "compare", "batch", "resample", "transfer", "morph"}
+    assert set(SUBCOMMANDS) == {"reproduce", "compare", "batch", "resample", "transfer", "morph", "picture"}
     for argv in (["resampel", "x.off"], ["resampel"], ["bach", "meshes/", "--out", "o"]):
         assert main(argv) == 2
         line = one_line(capsys.readouterr().err, "sphere-nlp: error: unknown command")
@@ -280,8 +280,7 @@ def test_subcommands_do_not_import_the_command_line_module():
 
 def test_view_takes_a_negative_azimuth_as_its_own_argument(tmp_path, capsys):
     for view in (["--view", "-60,20"], ["--view=-60,20"]):
-        status = main([str(MODELS / "cylinder.off"), "-o", str(tmp_path / "s.off"), "--png",
-                       str(tmp_path / "p.png"), *view, "-q"])
+        status = main([str(MODELS / "cylinder.off"), "-o", str(tmp_path / "s.off"), "--png", *view, "-q"])
         assert status == 0, capsys.readouterr().err
     assert main([str(MODELS / "cylinder.off"), "--view", "-60"]) == 2
     assert "expected AZIMUTH,ELEVATION" in one_line(capsys.readouterr().err, "sphere-nlp: error:")
@@ -302,7 +301,7 @@ def test_view_takes_a_negative_azimuth_as_its_own_argument(tmp_path, capsys):
     (["--up", "w"], "argument --up"),
 ], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
 def test_every_numeric_option_is_checked_before_solving(option, fragment, tmp_path, capsys):
-    outputs = ["-o", str(tmp_path / "s.off"), "--png", str(tmp_path / "p.png")]
+    outputs = ["-o", str(tmp_path / "s.off"), "--png"]
     started = time.perf_counter()
     assert main([str(MODELS / "cylinder.off"), *outputs, *option, "-q"]) == 2
     line = capsys.readouterr().err.strip()
@@ -333,7 +332,7 @@ runpy.run_module("sphere_nlp", run_name="__main__")
 def test_quiet_silences_warnings_too(tmp_path):
     for quiet in ([], ["-q"]):
         p = subprocess.run([sys.executable, "-c", WARNING_PROGRAM, str(MODELS / "cylinder.off"), "-o",
-                            str(tmp_path / "s.off"), "--png", str(tmp_path / "p.png"), *quiet],
+                            str(tmp_path / "s.off"), "--png", *quiet],
                            capture_output=True, text=True, env=env(), cwd=tmp_path)
         assert p.returncode == 0, p.stderr
         assert ("RuntimeWarning" in p.stderr) == (not quiet), p.stderr
@@ -367,6 +366,14 @@ def meshes(tmp_path):
     (["batch", "{a}", "--out", "{d}/o", "--bogus"], "unrecognized arguments: --bogus"),
     (["batch", "{a}", "{b}", "--out", "{d}", "--start", "{d}/a.sphere.off"], "would replace the --start sphere"),
     (["reproduce", "fig3", "--out", "{a}"], "it is a file, not a folder"),
+    (["picture", "{a}", "{d}/a.sphere.off", "-o", "{a}"], "-o {d}/a.off is the input mesh"),
+    (["picture", "{a}", "{d}/a.sphere.off", "-o", "{d}/a.sphere.off"], "is the sphere"),
+    (["picture", "{a}", "{d}/a.sphere.off", "-o", "{d}/p.jpg"], "a picture must end in .png"),
+    (["picture", "{a}", "{b}"], "b.off is not a sphere centred at the origin"),
+    (["picture", "{a}", "{torus}"], "torus.off is not a sphere of {d}/a.off: 60 vertices / 120 faces against 162 / 320"),
+    (["picture", "{a}", "{d}/missing.off"], "cannot read {d}/missing.off: no such file"),
+    (["picture", "{a}", "{d}/a.sphere.off", "--view", "10,95"], "the elevation must be between -90 and 90"),
+    (["picture", "{a}", "{d}/a.sphere.off", "--up", "w"], "argument --up"),
 ], ids=lambda v: v if isinstance(v, str) else " ".join(v[:1]))
 def test_subcommands_check_everything_before_solving_in_one_line(argv, fragment, meshes, capsys):
     (meshes / "a.sphere.off").write_bytes((meshes / "a.off").read_bytes())     # a --start for batch
@@ -376,7 +383,7 @@ def test_subcommands_check_everything_before_solving_in_one_line(argv, fragment,
     started = time.perf_counter()
     assert main(argv) == 2
     line = one_line(capsys.readouterr().err, "sphere-nlp %s: error: " % argv[0])
-    assert fragment in line, line
+    assert fragment.format(d=meshes) in line, line
     assert time.perf_counter() - started < 10              # nothing was solved
     assert folder_state(meshes) == before                  # nothing written, the inputs untouched
 

@@ -204,10 +204,10 @@ def test_a_byte_order_mark_does_not_lose_the_first_vertex(encoding, tmp_path):
     ["-o", "{input}"],
     ["-o", "x.obj", "--textured-input", "x.obj"],
     ["--save-solution", "x.off", "-o", "x.off"],
-    ["--report", "p.png", "--png", "p.png"],
+    ["-o", "p.off", "--png", "--report", "p.png"],
     ["-o", "sub/../x.off", "--report", "x.off"],
     ["--textured-input", "{input_obj}"],
-    ["-o", "x.obj", "--texture", "p.png", "--png", "p.png"],
+    ["-o", "p.obj", "--texture", "p.png", "--png"],
 ], ids=["output-is-input", "output-textured", "solution-output", "report-png", "same-file-other-spelling",
         "textured-is-input", "texture-png"])
 def test_outputs_must_differ_from_each_other_and_from_the_input(options, tmp_path, capsys, monkeypatch):
@@ -229,7 +229,6 @@ def test_outputs_must_differ_from_each_other_and_from_the_input(options, tmp_pat
 # --- 4. output paths found before solving ---------------------------------------------------------
 
 @pytest.mark.parametrize("option,name,fragment", [
-    ("--png", "missing/p.png", "no such folder missing"),
     ("--textured-input", "missing/t.obj", "no such folder"),
     ("--save-solution", "missing/s.npz", "no such folder"),
     ("--report", "missing/r.json", "no such folder"),
@@ -237,7 +236,7 @@ def test_outputs_must_differ_from_each_other_and_from_the_input(options, tmp_pat
     ("-o", "a_file.txt/o.off", "is not a folder"),
     ("-o", "a_folder.off", "it is a folder"),
     ("--report", "x" * 300 + ".json", "name too long"),
-], ids=["png", "textured", "solution", "report", "output", "parent-is-file", "output-is-folder", "too-long"])
+], ids=["textured", "solution", "report", "output", "parent-is-file", "output-is-folder", "too-long"])
 def test_every_output_path_problem_is_found_before_solving(option, name, fragment, tmp_path, capsys,
                                                            monkeypatch, small_mesh):
     monkeypatch.chdir(tmp_path)
@@ -268,11 +267,11 @@ def test_huge_coordinates_map_or_fail_cleanly_with_nothing_written(tmp_path, cap
     source = tmp_path / "huge.off"
     write_mesh(source, V * 1.7e308, F)             # the bounding box is wider than 1.8e308
     status, stderr = run_cli(capsys, source, "-o", tmp_path / "out.obj", "--textured-input",
-                             tmp_path / "t.obj", "--png", tmp_path / "p.png", "--report", tmp_path / "r.json",
+                             tmp_path / "t.obj", "--png", "--report", tmp_path / "r.json",
                              "-q")
     assert "internal error" not in stderr, stderr
     if status == 0:
-        assert {"out.obj", "t.obj", "p.png", "r.json"} <= set(os.listdir(tmp_path))
+        assert {"out.obj", "t.obj", "out.png", "r.json"} <= set(os.listdir(tmp_path))
         V_out, F_out = load_mesh(tmp_path / "out.obj")
         np.testing.assert_allclose(np.linalg.norm(V_out, axis=1), 1.0, atol=1e-12)
     else:
@@ -289,7 +288,7 @@ def test_a_failure_after_some_outputs_were_staged_writes_none_of_them(tmp_path, 
 
     monkeypatch.setattr(sphere_nlp.api.SphericalParameterization, "write_png", broken_png)
     status, stderr = run_cli(capsys, small_mesh, "-o", existing, "--save-solution", tmp_path / "s.npz",
-                             "--png", tmp_path / "p.png", "-q")
+                             "--png", "-q")
     assert status == 1 and "nothing written" in stderr
     assert sorted(os.listdir(tmp_path)) == ["in", "out.off"] and existing.read_text() == PRECIOUS
 

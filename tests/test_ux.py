@@ -237,20 +237,61 @@ def test_png_colour_scale_is_one_linear_scale_symmetric_about_zero(cylinder_resu
 
 
 @pytest.mark.parametrize("reach", [3e-4, 0.047, 0.47, 1.0, 2.3, 14.0, 1234.0])
-def test_colour_scale_ticks_are_round_even_and_cover_the_range(reach):
-    from sphere_nlp.picture import colour_range
+@pytest.mark.parametrize("shorter", [1 / 3, 0.8])
+def test_colour_scale_ticks_are_round_even_and_cover_the_range(reach, shorter):
+    from sphere_nlp.picture import colour_range, weighted_percentile
 
-    values = np.linspace(-reach / 3, reach, 500)
+    values = np.linspace(-reach * shorter, reach, 500)
     for measure in ("area", "angle"):
         low, high, ticks, share = colour_range(values if measure == "area" else np.abs(values),
                                                np.ones(500), measure)
-        step = ticks[1] - ticks[0]
-        assert np.allclose(np.diff(ticks), step) and ticks[0] == low and ticks[-1] == high
-        assert (low == -high) if measure == "area" else (low == 0)
-        mantissa = step / 10 ** np.floor(np.log10(step))
-        assert any(np.isclose(mantissa, m) for m in (1, 2, 2.5, 5))      # labels read as round numbers
-        assert max(reach, 1e-3) * 0.98 <= high < max(reach, 1e-3) + step
-        assert round(high / step) in (2, 3)                   # two or three labelled steps from 0 to each end
+        assert ticks[0] == low and ticks[-1] == high and 0.0 in ticks
+        zero = ticks.index(0.0)
+        # Each side reaches its 2nd or 98th percentile (the larger one on both when symmetric).
+        shown = values if measure == "area" else np.abs(values)
+        above = max(weighted_percentile(shown, np.ones(500), 98), 1e-3)
+        below = max(-weighted_percentile(shown, np.ones(500), 2), 1e-3)
+        symmetric = measure == "area" and min(above, below) >= max(above, below) / 2
+        sides = [(ticks[zero:], max(above, below) if symmetric else above)]
+        if measure == "area":
+            sides.append(([-t for t in ticks[zero::-1]], max(above, below) if symmetric else below))
+        for side, side_reach in sides:
+            step = side[1] - side[0]
+            assert np.allclose(np.diff(side), step)
+            mantissa = step / 10 ** np.floor(np.log10(step))
+            assert any(np.isclose(mantissa, m) for m in (1, 2, 2.5, 5))      # labels read as round numbers
+            assert round(side[-1] / step) in (2, 3)           # two or three labelled steps from 0 to each end
+            assert side_reach <= side[-1] < side_reach + step
+        if measure == "area":
+            # Symmetric when the sides reach within a factor 2 of each other, else each on its own.
+            assert (low == -high) == symmetric and symmetric == (shorter > 0.5 or reach < 1e-3)
+        else:
+            assert low == 0
+
+
+def test_sphere_panel_of_a_default_mode_map_of_a_limbed_body_is_coloured(tmp_path):
+    from matplotlib.image import imread
+    import meshgen
+
+    # A conformal map shrinks the legs by e^-15 and grows the body, which fills the sphere, by e^1:
+    # on one scale symmetric about 0 that sphere panel was all white.
+    result = sphere_nlp.parameterize(meshgen.four_legged_body())
+    assert result.success and result.shrinkage()["note"]
+    info = result.write_png(tmp_path / "p.png")
+    low, high = info["colour_limits"]
+    assert low <= -10 and 0.5 <= high <= 3                  # each side of 0 on its own range
+    pixels = imread(str(tmp_path / "p.png"))[:, :, :3]
+    mesh, sphere = pixels[40:450, 20:480], pixels[40:450, 520:980]
+    for panel in (mesh, sphere):
+        drawn = (panel < 0.97).any(axis=2)
+        coloured = drawn & (np.ptp(panel, axis=2) > 0.1)   # not the greys of white shaded
+        assert drawn.sum() > 20_000 and coloured.sum() > 0.5 * drawn.sum()
+        # Not one colour either: the body's growth varies over the sphere.
+        hues = np.unique((panel[coloured] * 8).astype(int), axis=0)
+        assert len(hues) >= 8
+    # The body red on both panels, the legs blue on the mesh.
+    assert (sphere[..., 0] > sphere[..., 2] + 0.15).sum() > 20_000
+    assert (mesh[..., 0] > mesh[..., 2] + 0.15).sum() > 5_000 and (mesh[..., 2] > mesh[..., 0] + 0.15).sum() > 5_000
 
 
 def y_up_figure(base=True):
@@ -284,10 +325,35 @@ def test_detect_up_on_real_meshes_modelled_y_up_and_z_up():
     from conftest import shared_mesh
     from sphere_nlp.picture import detect_up
 
+    # Two-legged figures too: their feet are not taken for a stance lying down.
     expected = {"bunny.off": "+y", "knight.off": "+y", "penguin.obj": "+y", "spot.obj": "+y",
-                "hand_closed.obj": "+y", "cheburashka.off": "+y", "nefertiti.obj": "+z"}
+                "hand_closed.obj": "+y", "cheburashka.off": "+y", "nefertiti.obj": "+z",
+                "human_woman.obj": "+y", "elephant.obj": "+y", "armadillo_remeshed.obj": "+y"}
     found = {name: detect_up(*sphere_nlp.load_mesh(shared_mesh(name))) for name in expected}
     assert found == expected
+
+
+def test_detect_up_stands_a_four_legged_body_on_its_legs_whichever_axis_they_point_along():
+    import meshgen
+    from sphere_nlp.picture import UP_AXES, detect_up, flat_base_shares, standing_legs, upright_rotation
+
+    V, F = meshgen.four_legged_body()                       # modelled Z up: legs along -z, a tail
+    assert flat_base_shares(V, F).max() < 0.02              # round feet: the legs, not a base, decide
+    for axis in UP_AXES:                                    # legs along -x, -y, -z, +x, +y, +z
+        W = V @ upright_rotation(axis)                      # takes +Z to the axis
+        assert detect_up(W, F) == axis
+        assert standing_legs(W, F)[UP_AXES.index(axis)] == 4
+
+
+@pytest.mark.parametrize("name", ["cat.obj", "koala.obj"])
+def test_detect_up_stands_a_real_animal_on_its_paws_however_it_was_modelled(name):
+    from conftest import shared_mesh
+    from sphere_nlp.picture import UP_AXES, detect_up, upright_rotation
+
+    V, F = sphere_nlp.load_mesh(shared_mesh(name))           # both modelled Y up
+    for axis in UP_AXES:
+        W = V @ (upright_rotation(axis).T @ upright_rotation("y")).T      # +Y taken to the axis
+        assert detect_up(W, F) == axis, axis
 
 
 def test_picture_draws_the_up_axis_up(tmp_path):
@@ -369,11 +435,36 @@ def test_best_view_faces_the_broad_side_and_view_option_overrides_it(tmp_path, c
     V, F = icosphere(2)
     azimuth, elevation = best_view(V * [0.2, 1, 1], F)         # a plate in the y-z plane
     assert abs(np.cos(np.radians(azimuth)) * np.cos(np.radians(elevation))) > 0.95
-    status, _ = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.off", "--png", tmp_path / "p.png",
-                        "--view=-30,10", "-q")
-    assert status == 0 and (tmp_path / "p.png").read_bytes()[:8] == PNG_SIGNATURE
+    status, _ = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.off", "--png", "--view=-30,10", "-q")
+    assert status == 0 and (tmp_path / "s.png").read_bytes()[:8] == PNG_SIGNATURE
     status, stderr = run_cli(capsys, MODELS / "cylinder.off", "--view", "north")
     assert status == 2 and "--view" in stderr
+
+
+def test_picture_command_redraws_a_written_map_without_solving(cylinder_result, tmp_path, capsys, monkeypatch):
+    from matplotlib.image import imread
+
+    def no_solving(*args, **kwargs):
+        raise AssertionError("picture solved a map")
+
+    sphere = tmp_path / "cylinder.sphere.off"
+    cylinder_result.write(sphere)
+    cylinder_result.write_png(tmp_path / "run.png", measure="angle", view=(-30.0, 10.0), up="x")
+    monkeypatch.setattr(sphere_nlp.api, "parameterize", no_solving)
+    status, stderr = run_cli(capsys, "picture", MODELS / "cylinder.off", sphere, "--view", "-30,10", "--up", "x",
+                             "--measure", "angle", "-o", tmp_path / "again.png")
+    assert status == 0, stderr
+    assert stderr.startswith("sphere-nlp picture: wrote %s: coloured by angle distortion" % (tmp_path / "again.png"))
+    # The same panels, colour bar and caption as the run's own picture (only the title above differs).
+    run, again = imread(str(tmp_path / "run.png")), imread(str(tmp_path / "again.png"))
+    assert run.shape == again.shape
+    differing = (np.abs(run[40:] - again[40:]).max(axis=2) > 0.02).mean()
+    assert differing < 1e-3, differing
+    # Without -o the picture goes beside the sphere, named after it; the measure then follows the
+    # map's numbers (the default mode shrinks the caps: coloured by area).
+    status, stderr = run_cli(capsys, "picture", MODELS / "cylinder.off", sphere)
+    assert status == 0 and "wrote %s: coloured by log(sphere area / mesh area)" % (tmp_path / "cylinder.png") in stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again.png", "cylinder.png", "cylinder.sphere.off", "run.png"]
 
 
 def test_png_refused_for_uncertified_results_and_bad_names(cylinder_result, tmp_path):
@@ -438,7 +529,7 @@ def with_models(directory):
 
 def test_quiet_prints_nothing_on_success(tmp_path, capsys):
     status, stderr = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.obj", "--png",
-                             tmp_path / "s.png", "--textured-input", tmp_path / "t.obj", "--quiet")
+                             "--textured-input", tmp_path / "t.obj", "--quiet")
     assert status == 0 and stderr == "" and capsys.readouterr().out == ""
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.obj", "s.png", "t.obj"]
 
@@ -469,18 +560,39 @@ def test_failed_run_writes_no_picture_and_no_meshes(tmp_path, capsys):
 
     source = tmp_path / "ellipsoid.off"
     sphere_nlp.write_mesh(source, *meshgen.ellipsoid(2))
-    status, stderr = run_cli(capsys, source, "-o", tmp_path / "s.obj", "--png", tmp_path / "s.png",
+    status, stderr = run_cli(capsys, source, "-o", tmp_path / "s.obj", "--png",
                              "--textured-input", tmp_path / "t.obj", "--max-iter", "1")
     assert status == 1 and "nothing written" in stderr
     assert [p.name for p in tmp_path.iterdir()] == ["ellipsoid.off"]
 
 
 def test_bad_picture_or_texture_name_is_a_usage_error_before_solving(tmp_path, capsys):
-    for option, name in (("--png", "s.jpg"), ("--textured-input", "t.ply")):
-        status, stderr = run_cli(capsys, MODELS / "cylinder.off", "-o", tmp_path / "s.off", option,
-                                 tmp_path / name)
-        assert status == 2 and "must end in" in stderr and "mapping" not in stderr
+    status, stderr = run_cli(capsys, MODELS / "cylinder.off", "--textured-input", tmp_path / "t.ply")
+    assert status == 2 and "must end in" in stderr and "mapping" not in stderr
+    # --png is a flag, as in batch: a name after it is refused with the way to get that name.
+    status, stderr = run_cli(capsys, MODELS / "cylinder.off", "--png", tmp_path / "p.png")
+    assert status == 2 and stderr.strip() == ("sphere-nlp: error: --png takes no file name: the picture goes beside "
+                                              "the sphere, named after it (for %s, give the sphere that name: -o %s)"
+                                              % (tmp_path / "p.png", tmp_path / "p.off"))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_png_is_one_flag_naming_the_picture_after_the_sphere_in_the_main_command_and_batch(tmp_path, capsys,
+                                                                                         monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for argv in ([MODELS / "cylinder.off", "--png", "-q"],
+                 [MODELS / "cylinder.off", "--png", "--target", "equal-areas", "-q"],
+                 ["batch", MODELS / "cylinder.off", "--out", "b", "--png", "-q"]):
+        assert run_cli(capsys, *argv)[0] == 0
+    # Each picture beside its sphere under the sphere's name, the mode included where the name has it.
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == ["cylinder.equal-areas.png", "cylinder.png"]
+    assert (tmp_path / "b" / "cylinder.png").read_bytes()[:8] == PNG_SIGNATURE
+    help_text = subprocess.run([sys.executable, "-m", "sphere_nlp", "--help"], capture_output=True, text=True,
+                               env=checkout_env()).stdout
+    batch_help = subprocess.run([sys.executable, "-m", "sphere_nlp", "batch", "--help"], capture_output=True,
+                                text=True, env=checkout_env()).stdout
+    assert "beside the sphere, named after it" in " ".join(help_text.split())
+    assert "beside each sphere, named after it" in " ".join(batch_help.split())
 
 
 class FakeTerminal(io.StringIO):
@@ -669,6 +781,19 @@ def test_readme_python_runs_and_its_numbers_are_current(tmp_path, monkeypatch):
     assert "# %.2f: mean angle distortion" % distortion["mean_abs_angle_diff_deg"] in readme
     assert ("mean angle distortion %.2f°, mean |log area ratio| %.3f"
             % (distortion["mean_abs_angle_diff_deg"], distortion["mean_abs_log_area"])) in readme
+
+
+def test_readme_stays_short_and_its_terms_are_in_the_glossary():
+    readme = (ROOT / "README.md").read_text()
+    assert len(readme) < 15_000
+    glossary = (ROOT / "docs" / "glossary.md").read_text()
+    assert "docs/glossary.md" in readme
+    terms = ["authalic", "certified", "degree 1", "polish", "objective (9)", "log-chord", "Hausdorff", "icosphere K"]
+    for term in terms:
+        # Each term the README uses has an entry of its own: a bold heading followed by its meaning.
+        assert term.split()[0] in readme, term
+        entry = re.search(r"^\* \*\*%s[^*]*\*\*: (.+?)(?=^\* |\Z)" % re.escape(term), glossary, re.M | re.S)
+        assert entry and len(entry[1].split()) >= 15, term
 
 
 # --- results in the ecosystem: trimesh, textured OBJ, version, one program name ----------------------
