@@ -17,7 +17,7 @@ CYLINDER = str(MODELS / "cylinder.off")
 
 def test_finished_case_row_is_certified_and_progress_is_reported(capsys):
     # A line per report interval while the case runs; the row is the worker's own report.
-    row = bench.run_case(CYLINDER, "original-areas", "log-chord", cap_s=120, report_every_s=0.2)
+    row = bench.run_case(CYLINDER, "equal-angles", "log-chord", cap_s=120, report_every_s=0.2)
     assert row["status"] == "Solve_Succeeded"
     assert row["certificate"]["valid"] and row["certificate"]["flipped"] == 0
     assert row["max_constraint_violation"] < 1e-8
