@@ -315,7 +315,7 @@ def authalic_descent(positions, faces, target_excess, deadline=None, stall=1e-3,
         trace.energy.append(E)
         trace.mean_abs_log_area.append(float(np.mean(np.abs(ratio))))
         if progress is not None:
-            progress("authalic", step_count, E, 0.0, trace.seconds[-1])
+            progress("authalic descent", step_count, E, 0.0, trace.seconds[-1])
         if trace.mean_abs_log_area[-1] < tolerance:
             trace.stopped = "tolerance"
             break

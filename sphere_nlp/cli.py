@@ -179,8 +179,8 @@ class Progress:
     def _update(self, text, always=False):
         """Show a progress state: rewrite the terminal line, or log a line every few seconds."""
         now = time.perf_counter()
-        # A terminal line can change often; a log file gets a line every few seconds.
-        interval = 0.2 if self.tty else 5.0
+        # A terminal line can change often; a log file gets a line every 2 s of a running stage.
+        interval = 0.2 if self.tty else 2.0
         if now - self.last < interval and not always:
             return
         self.last = now
@@ -201,7 +201,13 @@ class Progress:
             limit = self.long_stage_s
             self.say(LONG_STAGE_NOTE % ("%.0f minutes" % (limit / 60) if limit >= 120 else "%.0f s" % limit))
             self.long_stage_s = None
-        if not self.quiet:
+        if self.quiet:
+            return
+        if stage.startswith("authalic"):
+            # The area modes' first-order stage (SEM's solves, then the descent's steps): its
+            # energy, no constraints (every iterate is a certified map).
+            self._update("%s: step %d, area energy %.6g, %.1f s" % (stage, iteration, objective, self.elapsed()))
+        else:
             self._update("solve (%s): iteration %d, objective %.6g, constraint violation %.2e, %.1f s"
                          % (stage, iteration, objective, violation, self.elapsed()),
                          always=self.tty and iteration == 0)

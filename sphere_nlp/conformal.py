@@ -253,6 +253,16 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None):
     # Step 2: the harmonic map again, in south-pole stereographic coordinates, pinned near the south pole.
     by_height = np.argsort(S[:, 2])
     plane = _inversion(z)
+    Q = np.delete(plane[faces], big, axis=0)                # the big triangle is the plane's outside
+    e1, e2 = Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0]
+    with np.errstate(invalid="ignore"):
+        signed_area2 = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    if not np.all(np.isfinite(signed_area2) & (signed_area2 != 0)):
+        # Triangles of zero area in the plane: limbs shrunk past double precision. The
+        # correction would shrink their tips further still (a body of eight legs of 20-45 radii:
+        # smallest triangle 6e-30 of its share against 8e-28), below what the solve's answer can
+        # be unfolded at, so the first step's map is kept, as FLASH does when its solve fails.
+        return S
     count = max(round(n * fixed_fraction), 3)
     for attempt in range(2):
         fixed = by_height[:min(n, count)]

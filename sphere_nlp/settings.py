@@ -217,10 +217,11 @@ class SolverSettings:
     start_gauge : {"excess", "area"}
         Mobius normalisation of the angle modes' start (:func:`sphere_nlp.starts.starting_positions`);
         the area modes keep "area" (their continuation sets the scale).
-    authalic_steps, polish_iterations, polish_work, min_polish_iterations : int
+    authalic_steps, authalic_work, polish_iterations, polish_work, min_polish_iterations : int
         Area modes: the run's default budget (:func:`sphere_nlp.polish.default_budget`), counted in
         work so that the same input gives the same map on any machine at any load: at most
-        ``authalic_steps`` steps of the authalic descent, then ``polish_work / n`` IPOPT
+        ``authalic_work / n`` steps of the authalic descent (at least ``authalic_steps``, at most
+        ten times as many), then ``polish_work / n`` IPOPT
         iterations of the NLP's polish in each of its runs for n vertices, at most
         ``polish_iterations``, none below ``min_polish_iterations`` (its iterate is then projected
         onto the constraints). ``max_time`` replaces it by a wall-clock limit.
@@ -293,6 +294,7 @@ class SolverSettings:
     obtuse_angle: float = np.pi / 2
     start_gauge: str = "excess"
     authalic_steps: int = 400
+    authalic_work: int = 2_000_000
     polish_iterations: int = 30
     polish_work: int = 200_000
     min_polish_iterations: int = 8

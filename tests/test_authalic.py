@@ -128,13 +128,14 @@ def test_route_keeps_the_authalic_map_when_the_polish_would_raise_the_area_error
 
 
 def test_default_budget_is_counted_in_steps_and_iterations():
-    settings = SolverSettings(authalic_steps=7, polish_iterations=3, min_polish_iterations=1)
-    assert polish.default_budget(1000, settings) == {"descent_steps": 7, "polish_iterations": 3}
-    assert polish.default_budget(10 ** 6, settings)["polish_iterations"] == 0
+    settings = SolverSettings(authalic_steps=7, authalic_work=35_000, polish_iterations=3, min_polish_iterations=1)
+    assert polish.default_budget(1000, settings) == {"descent_steps": 35, "polish_iterations": 3}
+    assert polish.default_budget(10 ** 6, settings) == {"descent_steps": 7, "polish_iterations": 0}
+    assert polish.default_budget(10, settings)["descent_steps"] == 70
     V, F = ellipsoid(3)
     C, _, targets = _problem(V, F)
     route = polish.authalic_route(C, V, targets, budget=polish.default_budget(len(V), settings), settings=settings)
-    assert route.record["authalic"]["descent_steps"] <= 7
+    assert route.record["authalic"]["descent_steps"] <= polish.default_budget(len(V), settings)["descent_steps"]
     assert all(stage["iterations"] <= 3 for stage in route.solution.stages if stage["name"] != "projection")
     assert certify(route.positions, F).valid
 
@@ -204,3 +205,15 @@ def test_cli_max_time_none_and_the_run_line_names_the_answer(tmp_path):
                      r"|first area-keeping map, not refined: .*)$",
                      last) and "objective" not in last and "IPOPT" not in last
     assert out.is_file()
+
+
+def test_both_steps_of_the_authalic_stage_report_progress():
+    """SEM's solves and the descent's steps each report (the run's progress line every 2 s in a log)."""
+    V, F = ellipsoid(2)
+    _, start, targets = _problem(V, F)
+    seen = []
+    authalic.authalic_map(V, F, start, targets.excess, max_steps=5,
+                          progress=lambda stage, step, energy, violation, seconds: seen.append((stage, step, energy)))
+    stages = [stage for stage, _, _ in seen]
+    assert "authalic SEM" in stages and stages.count("authalic descent") == 5
+    assert all(np.isfinite(energy) for _, _, energy in seen)
