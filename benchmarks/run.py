@@ -33,11 +33,13 @@ SHARED = ROOT.parent / "shared" / "meshes"
 
 SHARED_CASES = ["knight.off", "spot.obj", "bunny.off", "max_planck.obj", "elephant.obj",
                 "cheburashka.off", "hand_closed.obj", "brain_lh_pial_fsaverage5.off",
-                "armadillo_remeshed.obj", "armadillo.obj", "nefertiti.obj", "penguin.obj", "koala.obj", "cat.obj"]
+                "armadillo_remeshed.obj", "armadillo.obj", "nefertiti.obj", "penguin.obj", "koala.obj", "cat.obj",
+                "human_woman.obj"]
 QUICK_CASES = SHARED_CASES[:7]
-# tests/meshgen.py's LIMBED_BODIES (--limbs): a round body with limbs of 10-30 radii, some clawed;
-# tests/test_limbs.py's slow cases.
-LIMBED_CASES = ("limbs:22k", "limbs:27k", "limbs:50k")
+# tests/meshgen.py's generated bodies (--limbs): LIMBED_BODIES, a round body with limbs of 10-30
+# radii, some clawed; THIN_LIMBED_BODIES, eight legs of 20-45 radii (the larger two with a tail);
+# FINGERED_BODY, many thin short protrusions beside four thick limbs. tests/test_limbs.py's slow cases.
+LIMBED_CASES = ("limbs:22k", "limbs:27k", "limbs:50k", "thin:27k", "thin:31k", "thin:50k", "fingered:27k")
 
 WORKER = r"""
 import json, os, sys, time, resource
@@ -50,10 +52,12 @@ mesh = spec["mesh"]
 if mesh.startswith("ellipsoid:"):
     V, F = icosphere(int(mesh.split(":")[1]))
     mesh = (V * np.array([1.0, 1.6, 0.7]), F)
-elif mesh.startswith("limbs:"):
+elif mesh.startswith(("limbs:", "thin:", "fingered:")):
     sys.path.insert(0, os.path.join(%(root)r, "tests"))
-    from meshgen import LIMBED_BODIES, limbed_body
-    mesh = limbed_body(**LIMBED_BODIES[mesh.split(":", 1)[1]])
+    from meshgen import FINGERED_BODY, LIMBED_BODIES, THIN_LIMBED_BODIES, limbed_body
+    kind, size = mesh.split(":", 1)
+    mesh = limbed_body(**(FINGERED_BODY if kind == "fingered" else
+                          (LIMBED_BODIES if kind == "limbs" else THIN_LIMBED_BODIES)[size]))
 t0 = time.perf_counter()
 # Where the run is, for the parent to report if the case hits its cap: the stages so far with their
 # iteration counts and the current stage's last iteration (rewritten at most every 2 s).
@@ -165,7 +169,7 @@ def run_case(mesh, mode, formulation, cap_s, start=None, report_every_s=60.0, ma
 
 def mesh_label(mesh):
     """Short table name: the file name, 'ellipsoid:N', or 'loop:<file name>' for the subdivided case."""
-    if mesh.startswith(("ellipsoid", "limbs:")):
+    if mesh.startswith(("ellipsoid", "limbs:", "thin:", "fingered:")):
         return mesh
     if mesh.startswith("loop:"):
         return "loop:" + Path(mesh[5:]).name

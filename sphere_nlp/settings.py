@@ -54,6 +54,10 @@ AREA_MODE_IPOPT_OPTIONS = MappingProxyType({
 # bounds are far from most corners, and IPOPT's mu_init 0.1 first pushed into the interior and back.
 ANGLE_MODE_MARGIN_OPTIONS = MappingProxyType({"mu_init": 1e-6})
 
+# ... unless a large share of the start lies below the area floor (floor_crowd_share): thin limbs,
+# whose triangles' bounds bind one after another under the small barrier.
+FLOOR_CROWD_MARGIN_OPTIONS = MappingProxyType({"mu_init": 1e-4})
+
 # A warm-started run (re-centred window, inequality stage from the equality solution): a small
 # barrier and small bound pushes, so that IPOPT stays near the point it starts from.
 WARM_START_OPTIONS = MappingProxyType({
@@ -94,6 +98,10 @@ class SolverSettings:
         Added in the area modes: the filter's violation cap in the max-norm, at the start's.
     angle_mode_margin_options : mapping
         Added to the angle modes' first margin run and to the projection (a small initial barrier).
+    floor_crowd_margin_options, floor_crowd_share : mapping, float
+        Added to the angle modes' first margin run instead, when at least ``floor_crowd_share`` of
+        the start's triangles lie below the area floor (thin limbs: their bounds bind one after
+        another under a small barrier; docs/tuning.md, "angle_mode_margin_options").
     warm_start_options : mapping
         Added to a run warm-started from an earlier one's multipliers.
     excess_window : float
@@ -252,6 +260,8 @@ class SolverSettings:
     ipopt_options: MappingProxyType = _frozen(DEFAULT_IPOPT_OPTIONS)
     area_mode_ipopt_options: MappingProxyType = _frozen(AREA_MODE_IPOPT_OPTIONS)
     angle_mode_margin_options: MappingProxyType = _frozen(ANGLE_MODE_MARGIN_OPTIONS)
+    floor_crowd_margin_options: MappingProxyType = _frozen(FLOOR_CROWD_MARGIN_OPTIONS)
+    floor_crowd_share: float = 0.2
     warm_start_options: MappingProxyType = _frozen(WARM_START_OPTIONS)
     excess_window: float = 5.0
     angle_mode_excess_window: float = 20.0
@@ -307,7 +317,7 @@ class SolverSettings:
 
     def __post_init__(self):
         # A plain dict given for an option mapping is copied read-only, so the object stays frozen.
-        for name in ("ipopt_options", "area_mode_ipopt_options", "angle_mode_margin_options",
+        for name in ("ipopt_options", "area_mode_ipopt_options", "angle_mode_margin_options", "floor_crowd_margin_options",
                      "warm_start_options", "area_continuation_options", "near_start_options"):
             object.__setattr__(self, name, MappingProxyType(dict(getattr(self, name))))
         for name in ("small_corner_floor", "area_mode_small_corner_floor"):

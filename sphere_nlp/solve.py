@@ -403,17 +403,22 @@ class _Context:
         warm_options = dict(options, **settings.warm_start_options)
         warm_options.update(ipopt_options or {})
         first_options = None
+        log_u_floor, log_e_floor = floor_bounds(targets, settings)
         walk = area_mode and start_area_distance(initial.excess, targets.excess) > settings.area_walk_distance
         if not walk:
-            # A start near the optimum: a small first barrier keeps the solve near it.
-            first_options = dict(options, **(settings.near_start_options if area_mode
+            # A start near the optimum: a small first barrier keeps the solve near it; but where
+            # much of the start lies below the area floor (thin limbs), those triangles' bounds bind
+            # one after another under it, and a larger first barrier takes fewer steps.
+            below_floor = np.mean(np.log(initial.excess) < log_e_floor)
+            first_options = dict(options, **(settings.near_start_options if area_mode else
+                                             settings.floor_crowd_margin_options
+                                             if below_floor >= settings.floor_crowd_share
                                              else settings.angle_mode_margin_options))
             first_options.update(ipopt_options or {})
         # The three redundant vertex sums (7) left out, at vertices of the valid start (none for
         # the linear guess, whose positions are unknown).
         dropped = (independent_vertices(initial.positions, connectivity.vertex_degree)
                    if initial.positions is not None else [])
-        log_u_floor, log_e_floor = floor_bounds(targets, settings)
         return cls(connectivity=connectivity, targets=targets, formulation=formulation, settings=settings,
                    log_u_floor=log_u_floor, log_e_floor=log_e_floor,
                    log_u_band=sliver_band_bounds(targets, settings),
