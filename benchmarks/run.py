@@ -252,11 +252,18 @@ def status_text(row):
     if route:
         # The area modes' authalic route (sphere_nlp.polish): which map is the answer, and the polish's end.
         polish = route.get("polish") or {}
-        budget = "%.3g-s budget" % route["budget"] if route.get("budget") else "no budget"
+        budget = route.get("budget")
+        if isinstance(budget, dict):            # counted in work (sphere_nlp.polish.default_budget)
+            budget = "budget %d steps, %d polish its" % (budget["descent_steps"], budget["polish_iterations"])
+        else:                                   # a wall-clock budget, as the area modes had before
+            budget = "%.3g-s budget" % budget if budget else "no budget"
         if route["answer"] == "polished":
             end = "optimum" if polish.get("converged") else "budget's end, projected"
             return "authalic + polish (%s, polished to IPOPT's %s)" % (budget, end)
-        return "authalic map (%s; %s)" % (budget, route.get("reason"))
+        authalic = route.get("authalic") or {}
+        stopped = (", descent: %d steps, %s" % (authalic["descent_steps"], authalic["descent_stopped"])
+                   if authalic.get("descent_stopped") else "")
+        return "authalic map (%s; %s%s)" % (budget, route.get("reason"), stopped)
     status = row.get("status", "")
     stopped = []
     if row.get("coarse") and row["coarse"].get("converged") is False:
