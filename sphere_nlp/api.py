@@ -550,8 +550,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         iteration, the unfolding and the certificate (and with ``on_limit="project"`` the
         projection, which may take a fifth of ``max_time`` plus 5 s more). The area modes have a
         default budget counted in work, not seconds (:func:`sphere_nlp.polish.default_budget`:
-        400 steps of the authalic descent, then up to 30 IPOPT iterations of the polish per run,
-        fewer on larger meshes), so that their map does not depend on the machine's speed or
+        300 to 3,000 steps of the authalic descent, then up to 30 IPOPT iterations of the polish
+        per run, fewer on larger meshes), so that their map does not depend on the machine's speed or
         load; ``max_time`` replaces it,
         ``math.inf`` runs both stages to the end.
     on_limit : {"fail", "project"}

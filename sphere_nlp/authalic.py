@@ -385,14 +385,15 @@ class AuthalicMap:
         return len(self.trace.energy)
 
 
-def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps=None, stall=1e-3,
-                 progress=None):
+def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps=None, tolerance=1e-4,
+                 stall=1e-3, progress=None):
     """A bijective map of the mesh whose spherical areas approach ``target_excess``.
 
     ``start`` is a certified map of the mesh (the conformal start); ``vertices`` the 3D positions
     (for untangling SEM's flipped triangles). Runs :func:`stretch_energy_map`, kept if it (after
     untangling) is bijective and nearer the targets, then at most ``max_steps`` steps of
-    :func:`authalic_descent` from the better map, within ``max_time`` seconds. The result is the
+    :func:`authalic_descent` from the better map (until its mean |log area ratio| is below
+    ``tolerance``), within ``max_time`` seconds. The result is the
     start itself at worst.
     """
     faces = np.asarray(faces, dtype=np.int64)
@@ -410,8 +411,8 @@ def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps
     if sem_error < best_error:
         best, best_error = sem, sem_error
     sem_seconds = time.perf_counter() - began
-    X, trace = authalic_descent(best, faces, target_excess, deadline=deadline, max_steps=max_steps, stall=stall,
-                                progress=progress)
+    X, trace = authalic_descent(best, faces, target_excess, deadline=deadline, max_steps=max_steps,
+                                tolerance=tolerance, stall=stall, progress=progress)
     return AuthalicMap(positions=X, mean_abs_log_area=mean_abs_log_area(X, faces, target_excess),
                        start_mean_abs_log_area=start_error, sem_mean_abs_log_area=sem_error,
                        seconds=time.perf_counter() - began, sem_seconds=sem_seconds, trace=trace)

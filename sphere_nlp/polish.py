@@ -55,12 +55,15 @@ def default_budget(n_vertices, settings=DEFAULT_SETTINGS):
     |log area ratio| of 0.006 alone and 0.111 beside two busy processes). A descent step costs
     about the same per vertex at every size, so a small mesh gets ``authalic_work / n`` steps (at
     most ten times ``authalic_steps``: knight.off, 502 vertices, needs 1,400 to reach 0.03 from
-    its conformal start) and a large one ``authalic_steps``; an IPOPT iteration of the polish costs
+    its conformal start) and a large one ``authalic_steps``, both ending earlier below
+    ``authalic_tolerance``; an IPOPT iteration of the polish costs
     more per vertex on a larger mesh, so the polish gets ``polish_work / n`` iterations, at most
     ``polish_iterations``, and none below ``min_polish_iterations``.
 
-    >>> default_budget(500), default_budget(5000), default_budget(50000)
-    ({'descent_steps': 4000, 'polish_iterations': 30}, {'descent_steps': 400, 'polish_iterations': 30}, {'descent_steps': 400, 'polish_iterations': 0})
+    >>> default_budget(500)
+    {'descent_steps': 3000, 'polish_iterations': 30}
+    >>> default_budget(5000), default_budget(50000)["polish_iterations"]
+    ({'descent_steps': 300, 'polish_iterations': 12}, 0)
     """
     n_vertices = max(int(n_vertices), 1)
     iterations = min(int(settings.polish_iterations), int(settings.polish_work // n_vertices))
@@ -117,6 +120,7 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
     stage_time = None if math.isinf(left) else settings.authalic_share * left
     stage = authalic_map(vertices, faces, start, targets.excess, max_time=stage_time,
                          max_steps=None if budget is None else budget["descent_steps"],
+                         tolerance=1e-4 if budget is None else settings.authalic_tolerance,
                          stall=settings.authalic_stall, progress=progress)
     authalic_angles, authalic_excess = angles_and_excess(stage.positions, faces)
     authalic_objective = objective_value(targets, authalic_angles, authalic_excess)

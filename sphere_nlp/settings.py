@@ -226,10 +226,12 @@ class SolverSettings:
         Mobius normalisation of the angle modes' start (:func:`sphere_nlp.starts.starting_positions`);
         the area modes keep "area" (their continuation sets the scale).
     authalic_steps, authalic_work, polish_iterations, polish_work, min_polish_iterations : int
+    authalic_tolerance : float
         Area modes: the run's default budget (:func:`sphere_nlp.polish.default_budget`), counted in
         work so that the same input gives the same map on any machine at any load: at most
         ``authalic_work / n`` steps of the authalic descent (at least ``authalic_steps``, at most
-        ten times as many), then ``polish_work / n`` IPOPT
+        ten times as many; it stops earlier once its mean |log area ratio| is below
+        ``authalic_tolerance``, a sixth of the 0.03 the modes aim for), then ``polish_work / n`` IPOPT
         iterations of the NLP's polish in each of its runs for n vertices, at most
         ``polish_iterations``, none below ``min_polish_iterations`` (its iterate is then projected
         onto the constraints). ``max_time`` replaces it by a wall-clock limit.
@@ -303,11 +305,12 @@ class SolverSettings:
     projection_iterations: int = 50
     obtuse_angle: float = np.pi / 2
     start_gauge: str = "excess"
-    authalic_steps: int = 400
-    authalic_work: int = 2_000_000
+    authalic_steps: int = 300
+    authalic_work: int = 1_500_000
+    authalic_tolerance: float = 5e-3
     polish_iterations: int = 30
-    polish_work: int = 200_000
-    min_polish_iterations: int = 8
+    polish_work: int = 60_000
+    min_polish_iterations: int = 10
     authalic_share: float = 0.75
     authalic_stall: float = 1e-3
     polish_slack: float = 0.0
