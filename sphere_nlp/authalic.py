@@ -38,7 +38,7 @@ import scipy.sparse as sp
 from . import interrupts, sparse_lu
 from .certify import certify
 from .conformal import _assemble_edge_weights, _inverse_stereographic
-from .geometry import rotation_between, signed_solid_angles
+from .geometry import rotation_between, signed_solid_angles, triangle_areas
 from .untangle import untangle
 
 
@@ -85,9 +85,10 @@ def stretch_energy_map(positions, faces, target_excess, max_steps=50, radius=1.3
     lifts the plane back to the sphere. It returns the step of least stretch energy, stopping when
     ``patience`` steps in a row found none lower (the first steps from a conformal map whose limbs
     are shrunk by e^-10 can raise it before they lower it: koala.obj), after ``max_steps``, or at
-    ``deadline`` (a ``time.perf_counter`` value). The result is not certified here: the SEM step is
-    not orientation-safe (a few triangles can flip). ``progress(stage, step, energy, 0.0, seconds)``
-    is called after each step.
+    ``deadline`` (a ``time.perf_counter`` value). The SEM step is not orientation-safe (a few
+    triangles can flip), so it also returns the least-energy step that is a bijective map (None if
+    none is): (least energy, least energy among the bijective). ``progress(stage, step, energy,
+    0.0, seconds)`` is called after each step.
     """
     faces = np.asarray(faces, dtype=np.int64)
     target_share = target_excess / target_excess.sum()
@@ -104,6 +105,7 @@ def stretch_energy_map(positions, faces, target_excess, max_steps=50, radius=1.3
 
     E, L = energy(S)
     best, best_energy, since_best = S, E, 0
+    bijective, bijective_energy = None, np.inf
     plane = _stereographic(S)
     began = time.perf_counter()
     for step in range(1, max_steps + 1):
@@ -131,9 +133,11 @@ def stretch_energy_map(positions, faces, target_excess, max_steps=50, radius=1.3
         since_best += 1
         if E < best_energy:
             best, best_energy, since_best = S, E, 0
+        if E < bijective_energy and certify(S, faces).valid:
+            bijective, bijective_energy = S, E
         if progress is not None:
             progress("authalic SEM", step, E, 0.0, time.perf_counter() - began)
-    return best
+    return best, bijective
 
 
 # --- Riemannian descent ---------------------------------------------------------------------------------
@@ -402,14 +406,30 @@ def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps
     deadline = None if max_time is None else began + max_time
     best = np.asarray(start, dtype=float)
     start_error = best_error = mean_abs_log_area(best, faces, target_excess)
-    sem = stretch_energy_map(best, faces, target_excess, deadline=deadline, progress=progress)
+    sem, sem_bijective = stretch_energy_map(best, faces, target_excess, deadline=deadline, progress=progress)
     if not certify(sem, faces).valid and not (deadline is not None and time.perf_counter() > deadline):
         # SEM's solves are not orientation-safe: re-embed small disks around the few flipped triangles.
         sem, _ = untangle(sem, faces, mesh_vertices=vertices)
     sem_error = np.inf if sem is None or not certify(sem, faces).valid else mean_abs_log_area(sem, faces,
                                                                                                target_excess)
-    if sem_error < best_error:
-        best, best_error = sem, sem_error
+    candidates = [(sem, sem_error), (sem_bijective, None)]
+    if sem_error == np.inf and not (deadline is not None and time.perf_counter() > deadline):
+        # Where SEM's map cannot be untangled (human_woman.obj equal-areas: its best bijective step
+        # is at 7.8), SEM towards the surface's own areas, which its start is conformal to, opens the
+        # collapsed fingers (0.23 against its own areas) for the descent to take on from there.
+        own = triangle_areas(vertices, faces)
+        own_sem, own_bijective = stretch_energy_map(best, faces, own * (4 * np.pi / own.sum()), deadline=deadline,
+                                                    progress=progress)
+        if not certify(own_sem, faces).valid:
+            own_sem, _ = untangle(own_sem, faces, mesh_vertices=vertices)
+        candidates += [(own_sem, None), (own_bijective, None)]
+    for candidate, error in candidates:
+        if candidate is None:
+            continue
+        if error is None:
+            error = mean_abs_log_area(candidate, faces, target_excess) if certify(candidate, faces).valid else np.inf
+        if error < best_error:
+            best, best_error = candidate, error
     sem_seconds = time.perf_counter() - began
     X, trace = authalic_descent(best, faces, target_excess, deadline=deadline, max_steps=max_steps,
                                 tolerance=tolerance, stall=stall, progress=progress)
