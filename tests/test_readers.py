@@ -121,16 +121,20 @@ def test_large_obj_of_vertices_alone_is_refused_fast_in_little_memory(tmp_path):
             out.write(b"v 1 2 3\n" * 100_000)
     assert path.stat().st_size >= 50_000_000
     env = dict(os.environ, PYTHONPATH=str(Path(mesh_io.__file__).parents[1]))
-    stdout, stderr = tmp_path / "stdout", tmp_path / "stderr"
+    stdout, stderr, peak = tmp_path / "stdout", tmp_path / "stderr", tmp_path / "peak"
+    # The child's own peak (VmHWM of its process image, read as it exits): ru_maxrss would count
+    # the pytest process it was forked from, hundreds of MB late in a full run.
+    command = ("import atexit, re, runpy, sys\n"
+               "atexit.register(lambda: open(%r, 'w').write(re.search(r'VmHWM:\\s+(\\d+)',"
+               " open('/proc/self/status').read()).group(1)))\n"
+               "sys.argv = ['sphere-nlp', %r, '-o', %r]\n"
+               "runpy.run_module('sphere_nlp', run_name='__main__')\n" % (str(peak), str(path), str(tmp_path / "s.off")))
     with open(stdout, "wb") as out, open(stderr, "wb") as err:
         clock = time.perf_counter()
-        child = subprocess.Popen([sys.executable, "-m", "sphere_nlp", str(path), "-o", str(tmp_path / "s.off")],
-                                 stdout=out, stderr=err, env=env)
-        # wait4: this child's own peak memory (Linux: KB), not the largest of every child so far.
-        _, status, usage = os.wait4(child.pid, 0)
+        child = subprocess.run([sys.executable, "-c", command], stdout=out, stderr=err, env=env)
         seconds = time.perf_counter() - clock
-    child.returncode = os.waitstatus_to_exitcode(status)
-    peak_mb = usage.ru_maxrss / 1024
+    peak_mb = int(peak.read_text()) / 1024
+    peak.unlink()
     path.unlink()
     lines = stderr.read_text().strip().splitlines()
     assert child.returncode == 2 and stdout.read_bytes() == b""
