@@ -157,7 +157,7 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
             error = mean_abs_log_area(candidate, faces, targets.excess)
             if not certify(candidate, faces).valid:
                 reason = "the polished map failed its certificate"
-            elif error > stage.mean_abs_log_area * (1 + 1e-9):
+            elif _raised(error, stage.mean_abs_log_area):
                 reason = "the polish raised the mean |log area ratio|"
             else:
                 answer, reason, positions, unfold_info = "polished", None, candidate, info
@@ -191,9 +191,14 @@ def _rejection(polished, targets, authalic_error, authalic_objective):
     if polished.objective > authalic_objective:
         return "the polish did not lower objective (9)"
     error = float(np.mean(np.abs(np.log(polished.excess / targets.excess))))
-    if error > authalic_error * (1 + 1e-9):        # more than the unfolding's rounding
+    if _raised(error, authalic_error):
         return "the polish raised the mean |log area ratio|"
     return None
+
+
+def _raised(error, before):
+    """Whether an area error is above ``before`` by more than the unfolding's rounding."""
+    return error > before * (1 + 1e-9)
 
 
 # The run line's words for why the first area-keeping map is the answer (record["reason"] keeps

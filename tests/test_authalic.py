@@ -13,7 +13,7 @@ from meshgen import COLLAPSING_LIMBS, ellipsoid, limbed_body, random_genus0_mesh
 from sphere_nlp import authalic, parameterize, polish
 from sphere_nlp.certify import certify
 from sphere_nlp.connectivity import build_connectivity
-from sphere_nlp.geometry import signed_solid_angles, triangle_areas
+from sphere_nlp.geometry import signed_solid_angles
 from sphere_nlp.settings import SolverSettings
 from sphere_nlp.starts import angles_and_excess, starting_positions
 from sphere_nlp.targets import make_targets
