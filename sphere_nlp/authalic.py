@@ -289,19 +289,15 @@ def authalic_descent(positions, faces, target_excess, deadline=None, stall=1e-3,
             trace.stopped = "time"
             break
         interrupts.raise_if_interrupted()
-        if (step_count - 1) % refactor_every == 0:
-            try:
-                precondition = _Preconditioner(X, ratio, energy)
-            except RuntimeError:
-                trace.stopped = "a triangle too small for the preconditioner"
-                break
         try:
+            if (step_count - 1) % refactor_every == 0:
+                precondition = _Preconditioner(X, ratio, energy)
             found = _line_search(energy, X, E, G, _lbfgs_direction(G.ravel(), s_list, y_list, precondition))
             if found is None and s_list:
                 # The memory's direction led nowhere the barrier allows: start again from the gradient.
                 s_list.clear(), y_list.clear()
                 found = _line_search(energy, X, E, G, _lbfgs_direction(G.ravel(), s_list, y_list, precondition))
-        except RuntimeError:            # a non-finite direction (sparse_lu.NonFiniteSystem)
+        except RuntimeError:            # a non-finite preconditioner or direction (sparse_lu.NonFiniteSystem)
             trace.stopped = "a triangle too small for the preconditioner"
             break
         if found is None:
@@ -406,28 +402,30 @@ def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps
     deadline = None if max_time is None else began + max_time
     best = np.asarray(start, dtype=float)
     start_error = best_error = mean_abs_log_area(best, faces, target_excess)
-    sem, sem_bijective = stretch_energy_map(best, faces, target_excess, deadline=deadline, progress=progress)
-    if not certify(sem, faces).valid and not (deadline is not None and time.perf_counter() > deadline):
-        # SEM's solves are not orientation-safe: re-embed small disks around the few flipped triangles.
-        sem, _ = untangle(sem, faces, mesh_vertices=vertices)
-    sem_error = np.inf if sem is None or not certify(sem, faces).valid else mean_abs_log_area(sem, faces,
-                                                                                               target_excess)
-    candidates = [(sem, sem_error), (sem_bijective, None)]
-    if sem_error == np.inf and not (deadline is not None and time.perf_counter() > deadline):
+    def out_of_time():
+        return deadline is not None and time.perf_counter() > deadline
+
+    def error_of(X):
+        return mean_abs_log_area(X, faces, target_excess) if X is not None and certify(X, faces).valid else np.inf
+
+    def sem_maps(target):
+        """SEM's least-energy map (untangled where it flipped triangles) and its best bijective step."""
+        sem, bijective = stretch_energy_map(best, faces, target, deadline=deadline, progress=progress)
+        if not certify(sem, faces).valid and not out_of_time():
+            # SEM's solves are not orientation-safe: re-embed small disks around the flipped triangles.
+            sem, _ = untangle(sem, faces, mesh_vertices=vertices)
+        return [sem, bijective]
+
+    candidates = sem_maps(target_excess)
+    sem_error = error_of(candidates[0])
+    if sem_error == np.inf and not out_of_time():
         # Where SEM's map cannot be untangled (human_woman.obj equal-areas: its best bijective step
         # is at 7.8), SEM towards the surface's own areas, which its start is conformal to, opens the
         # collapsed fingers (0.23 against its own areas) for the descent to take on from there.
         own = triangle_areas(vertices, faces)
-        own_sem, own_bijective = stretch_energy_map(best, faces, own * (4 * np.pi / own.sum()), deadline=deadline,
-                                                    progress=progress)
-        if not certify(own_sem, faces).valid:
-            own_sem, _ = untangle(own_sem, faces, mesh_vertices=vertices)
-        candidates += [(own_sem, None), (own_bijective, None)]
-    for candidate, error in candidates:
-        if candidate is None:
-            continue
-        if error is None:
-            error = mean_abs_log_area(candidate, faces, target_excess) if certify(candidate, faces).valid else np.inf
+        candidates += sem_maps(own * (4 * np.pi / own.sum()))
+    for candidate in candidates:
+        error = error_of(candidate)
         if error < best_error:
             best, best_error = candidate, error
     sem_seconds = time.perf_counter() - began
