@@ -225,8 +225,11 @@ def summary_line(output, result):
         from .polish import describe
         line += "; " + describe(result.area_route)
     elif not result.converged:
-        line += ("; NOT OPTIMAL: the solve reached its limit after %d iterations (IPOPT %s), and the map it "
-                 "had reached was made valid and certified, not finished" % (result.iterations, result.status))
+        cap = next((stage["iteration_cap"] for stage in result.stages if stage.get("iteration_cap")), None)
+        limit = ("its iteration cap for a mesh of this size (%d a stage; --max-iter sets another)" % cap
+                 if cap else "its limit")
+        line += ("; NOT OPTIMAL: the solve reached %s after %d iterations (IPOPT %s), and the map it "
+                 "had reached was made valid and certified, not finished" % (limit, result.iterations, result.status))
     return line
 
 

@@ -170,6 +170,12 @@ class SolverSettings:
         Weight of the penalty on the three left-out vertex sums (see :class:`sphere_nlp.nlp.LogChordNLP`).
     max_dropped_penalty : float
         If those sums have not come back, the penalty is raised 100-fold at a time up to this.
+    max_sum_drift : float
+        At a vertex whose sum (7), left out and held by that penalty alone, would drift from 2 pi by
+        more than this (radians, a linear estimate of the angle term's pull towards its targets'
+        sum: :func:`sphere_nlp.solve.dropped_sum_drift`; about 6 at a spike's tip), the solver's
+        corner targets are shifted to sum to 2 pi, an equivalent objective
+        (:func:`sphere_nlp.solve.summed_targets`); inf: never.
     feasibility_tolerance : float
         A solve counts only if every equality (6)-(8) holds to this, whatever IPOPT reports.
     diverged_violation : float
@@ -220,6 +226,13 @@ class SolverSettings:
     projection_iterations : int
         Iteration cap of the projection of a stage stopped by the caller's limits (``max_iter``
         does not apply to it; ``max_time`` does).
+    min_stage_iterations, stage_iterations_per_vertex : int, float
+        Log-chord, when the caller gives no ``max_iter``: every IPOPT run stops after
+        max(``min_stage_iterations``, ``stage_iterations_per_vertex`` x n) iterations for n
+        vertices (at most ``ipopt_options``' max_iter, reached at 30k vertices); a margin stage
+        stopped there is projected onto the constraints as with ``on_limit="project"`` (a certified
+        map, not optimal, ``converged`` False), so that a small mesh never runs thousands of
+        iterations (:func:`sphere_nlp.solve.stage_iteration_cap`; docs/tuning.md).
     obtuse_angle : float
         Corners above this angle where a stage starts use the obtuse form of (8) (LogChordNLP).
     start_gauge : {"excess", "area"}
@@ -284,6 +297,7 @@ class SolverSettings:
     max_margin_lift: float = 1.0
     dropped_penalty: float = 100.0
     max_dropped_penalty: float = 1e6
+    max_sum_drift: float = 1.0
     feasibility_tolerance: float = 1e-8
     diverged_violation: float = 0.1
     abort_violation: float = 1.0
@@ -303,6 +317,8 @@ class SolverSettings:
     area_mode_hessian: str = "clipped"
     angle_mode_hessian: str = "clipped-corners"
     projection_iterations: int = 50
+    min_stage_iterations: int = 300
+    stage_iterations_per_vertex: float = 0.1
     obtuse_angle: float = np.pi / 2
     start_gauge: str = "excess"
     authalic_steps: int = 300

@@ -37,6 +37,12 @@ formulation, and the three redundant vertex constraints are left out (see
 3. Only if the result has a non-positive angle or excess, or e >= 2 alpha somewhere, IPOPT again with
    the inequalities (3)-(5) added, warm-started from stage 2.
 
+Without the caller's ``max_iter``, every log-chord run stops at a cap scaled by the mesh's size
+(:func:`stage_iteration_cap`), and a margin stage stopped there is projected as with
+``on_limit="project"``. At a vertex whose targets' sum is far from 2 pi with large weights (a
+spike's tip), the NLP's corner targets are shifted to sum to 2 pi (:func:`summed_targets`, the
+same minimiser); ``objective`` is always (9)'s with the mode's own targets.
+
 Each stage is a function of its own (:func:`margin_stage`, :func:`equality_fallback`,
 :func:`restore_dropped_sums`, :func:`all_constraints_stage`, :func:`area_continuation`,
 :func:`project_onto_constraints`) over :func:`windowed_solve`; :func:`solve_angles` runs them top
@@ -56,6 +62,7 @@ from .heap import arrays_on_heap
 from .names import ON_LIMIT  # noqa: F401  (what a stopped margin stage yields; defined there for a light --help)
 from .settings import DEFAULT_SETTINGS, SolverSettings
 from .starts import initial_point
+from .targets import Targets
 
 # The projection of a stage stopped by max_time (on_limit="project") may run past the run's
 # deadline (interrupts.deadline) by a fifth of max_time plus 5 s.
@@ -89,9 +96,10 @@ class AngleSolution:
         "embedding-uncentred" or "linear".
     converged : bool
         True when the last stage reached IPOPT's optimality tolerance. False for a failed solve, and
-        for a successful one whose margin stage stopped at ``max_iter`` or ``max_time``: its iterate
-        projected onto the constraints (stage "projection"), feasible but not optimal; ``status``
-        is then the stopped stage's (e.g. "Maximum_WallTime_Exceeded").
+        for a successful one whose margin stage stopped at ``max_iter`` or ``max_time``, or at the
+        size's iteration cap (:func:`stage_iteration_cap`; its stage record has ``iteration_cap``):
+        its iterate projected onto the constraints (stage "projection"), feasible but not optimal;
+        ``status`` is then the stopped stage's (e.g. "Maximum_WallTime_Exceeded").
     floor_corners, floor_triangles : int
         Log-chord: corners whose u end at, below or within 1% of their floor, triangles whose e end
         within 1% of theirs (:func:`floor_bounds`: ``corner_floor`` x beta, more for small targets,
@@ -189,6 +197,89 @@ def independent_vertices(positions, degrees=None):
     return [int(candidates[first]), int(candidates[second]), int(candidates[third])]
 
 
+@dataclass(frozen=True)
+class SummedTargets(Targets):
+    """Targets whose corner targets at some vertices were shifted to sum to 2 pi
+    (:func:`summed_targets`), keeping the original corner weights ``weights`` (t, 3)."""
+
+    weights: np.ndarray = None
+
+    @property
+    def corner_weights(self):
+        return self.weights
+
+
+def summed_targets(connectivity, targets, vertices):
+    """``targets`` with the corner targets at ``vertices`` shifted so that each vertex's sum is 2 pi,
+    an equivalent objective: the same minimiser, (9) less a constant, wherever (7) holds.
+
+    With the corner weights w_c (kept), beta'_c = beta_c + lambda / w_c, lambda = (2 pi - sum beta)
+    / sum (1 / w_c) over the vertex's corners: then sum_c w_c (alpha_c - beta'_c)^2 = sum_c w_c
+    (alpha_c - beta_c)^2 - 2 lambda (sum alpha - sum beta) + const, and sum alpha = 2 pi. At a
+    vertex whose targets sum far from 2 pi with large weights (a spike's tip: five corners of 0.3
+    degrees at weight 39,000), (9)'s gradient there is huge and balanced only by (7)'s multiplier;
+    IPOPT then crawled for thousands of iterations (docs/tuning.md, "max_sum_drift"). Returns
+    ``targets`` itself if ``vertices`` is empty.
+
+    Examples
+    --------
+    >>> from sphere_nlp.connectivity import build_connectivity
+    >>> from sphere_nlp.shapes import octahedron
+    >>> from sphere_nlp.targets import make_targets
+    >>> V, F = octahedron()
+    >>> c = build_connectivity(F, len(V))
+    >>> shifted = summed_targets(c, make_targets("original-angles", V, F, c.vertex_degree), [0])
+    >>> np.degrees(shifted.angles[F == 0]).round(6).tolist(), np.degrees(shifted.angles[F == 1]).round(6).tolist()
+    ([90.0, 90.0, 90.0, 90.0], [60.0, 60.0, 60.0, 60.0])
+    """
+    vertices = np.asarray(vertices, int)
+    if vertices.size == 0:
+        return targets
+    faces = np.asarray(connectivity.faces).ravel()
+    n = connectivity.n_vertices
+    weights = np.asarray(targets.corner_weights, float)
+    beta = np.asarray(targets.angles, float).ravel()
+    inverse = 1.0 / weights.ravel()
+    lam = (2 * np.pi - np.bincount(faces, beta, n)) / np.bincount(faces, inverse, n)
+    shifted = np.zeros(n, bool)
+    shifted[vertices] = True
+    angles = np.where(shifted[faces], beta + lam[faces] * inverse, beta).reshape(targets.angles.shape)
+    return SummedTargets(angles=angles, excess=targets.excess, angle_weight=targets.angle_weight,
+                         area_weight=targets.area_weight, mode=targets.mode,
+                         corner_weighting=targets.corner_weighting, weights=weights)
+
+
+def dropped_sum_drift(connectivity, targets, penalty=DEFAULT_SETTINGS.dropped_penalty):
+    """How far each vertex's sum (7) would drift from 2 pi if it were left out, (n,) radians.
+
+    A left-out sum is held at 2 pi only by the penalty ``penalty`` (s - 2 pi)^2, while the angle
+    term pulls it towards its targets' sum: moving the vertex's k corners together by (s - S) / k
+    from their targets (S = sum of beta) costs W (s - S)^2 with W = angle weight x the sum of the
+    corner weights / k^2. The minimum of the two is at W / (W + penalty) of the way from 2 pi to S:
+    that, times |2 pi - S|, is the drift (a linear estimate; the other constraints resist it too).
+    Nearly 0 on smooth surfaces (and exactly 0 in the equal modes, whose targets sum to 2 pi); about
+    6 at the tip of a spike 30 radii long, whose five corners target 0.6 degrees each at weight 9,100.
+
+    Examples
+    --------
+    >>> from sphere_nlp.connectivity import build_connectivity
+    >>> from sphere_nlp.shapes import octahedron
+    >>> from sphere_nlp.targets import make_targets
+    >>> V, F = octahedron()
+    >>> c = build_connectivity(F, len(V))
+    >>> drift = dropped_sum_drift(c, make_targets("original-angles", V, F, c.vertex_degree))
+    >>> round(float(drift[0]), 4)     # four 60-degree corners: 2 pi / 3 short of 2 pi, W = 1/4
+    0.0052
+    """
+    faces = np.asarray(connectivity.faces).ravel()
+    n = connectivity.n_vertices
+    degree = np.maximum(np.bincount(faces, minlength=n), 1)
+    weights = targets.angle_weight * np.asarray(targets.corner_weights, float).ravel()
+    stiffness = np.bincount(faces, weights, n) / degree ** 2
+    defect = np.abs(2 * np.pi - np.bincount(faces, np.asarray(targets.angles, float).ravel(), n))
+    return stiffness / (stiffness + penalty) * defect
+
+
 def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_options=None,
                  max_iter=None, max_time=None, progress=None, vertices=None, start=None, on_limit="fail",
                  settings=None, corner_floor=None, area_floor=None, excess_band=None):
@@ -267,6 +358,20 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         if formulation == "log-chord":
             return _solve_with_corner_floor(context, on_limit)
         return _solve_paper_form(context)
+
+
+def stage_iteration_cap(n_vertices, settings=DEFAULT_SETTINGS):
+    """The iteration cap of every IPOPT run of a log-chord solve without the caller's ``max_iter``:
+    max(``settings.min_stage_iterations``, ``settings.stage_iterations_per_vertex`` x n).
+
+    The shared meshes' stages take 4-50 iterations in the angle modes (a few hundred in the area
+    modes from the conformal start); a spike 60 radii long on a 162-vertex sphere crawled for 3,000
+    in the margin stage, within 0.01% of its optimum after 150 (docs/tuning.md).
+
+    >>> stage_iteration_cap(162), stage_iteration_cap(15000), stage_iteration_cap(43243)
+    (300, 1500, 4324)
+    """
+    return int(max(settings.min_stage_iterations, round(settings.stage_iterations_per_vertex * n_vertices)))
 
 
 def check_floors(corner_floor, area_floor):
@@ -385,6 +490,8 @@ class _Context:
     log_u_band: tuple = None
     log_e_band: tuple = None
     walk: bool = False
+    stage_cap: int = None
+    solve_targets: object = None
     stages: list = field(default_factory=list)
 
     @classmethod
@@ -399,6 +506,12 @@ class _Context:
         if max_time is not None:
             options["max_wall_time"] = float(max_time)
         options.update(ipopt_options or {})
+        stage_cap = None
+        if formulation == "log-chord" and max_iter is None and "max_iter" not in (ipopt_options or {}):
+            # No iteration limit asked for: the size's cap, whose stop is projected (not a failure).
+            cap = stage_iteration_cap(connectivity.n_vertices, settings)
+            if cap < int(options.get("max_iter", 3000)):
+                options["max_iter"] = stage_cap = cap
         # Warm-started runs: small barrier and bound pushes, but the caller's options still win.
         warm_options = dict(options, **settings.warm_start_options)
         warm_options.update(ipopt_options or {})
@@ -423,7 +536,9 @@ class _Context:
                    log_u_floor=log_u_floor, log_e_floor=log_e_floor,
                    log_u_band=sliver_band_bounds(targets, settings),
                    options=options, warm_options=warm_options, first_options=first_options, progress=progress,
-                   initial=initial, dropped=dropped, walk=walk,
+                   initial=initial, dropped=dropped, walk=walk, stage_cap=stage_cap,
+                   solve_targets=summed_targets(connectivity, targets, np.flatnonzero(
+                       dropped_sum_drift(connectivity, targets, settings.dropped_penalty) > settings.max_sum_drift)),
                    hessian=settings.area_mode_hessian if area_mode else settings.angle_mode_hessian,
                    window=settings.excess_window if area_mode else settings.angle_mode_excess_window)
 
@@ -435,7 +550,7 @@ class _Context:
         """The log-chord NLP with this solve's left-out vertices, Hessian, margin and penalty."""
         keywords.setdefault("dropped_penalty", self.settings.dropped_penalty)
         keywords.setdefault("log_u_band", self.log_u_band)
-        return LogChordNLP(self.connectivity, self.targets if targets is None else targets,
+        return LogChordNLP(self.connectivity, self.solve_targets if targets is None else targets,
                            dropped_vertices=self.dropped if dropped_vertices is None else dropped_vertices,
                            obtuse_corners=obtuse_corners, hessian=self.hessian,
                            angle_margin=self.settings.angle_margin, **keywords)
@@ -443,6 +558,10 @@ class _Context:
     def obtuse_at(self, nlp, x):
         """The corners to write in the obtuse form of (8) for a stage starting at x (AngleNLP)."""
         return nlp.unpack(x)[0] > self.settings.obtuse_angle
+
+    def capped(self, run):
+        """Whether the size's iteration cap (``stage_cap``), not the caller's limits, stopped ``run``."""
+        return self.stage_cap is not None and run.status == "Maximum_Iterations_Exceeded"
 
     def stage_progress(self, name):
         """The caller's progress function for the stage ``name``, or None."""
@@ -539,15 +658,16 @@ def _solve_log_chord(context, on_limit):
         weights = continuation_area_weights(context.targets, settings.area_continuation_weighting)
         x_start = area_continuation(lambda tg, x: context.nlp(context.obtuse_at(nlp, x), tg, area_form="log",
                                                               log_area_weights=weights),
-                                    context.targets, x0, context.n_faces, context.options,
+                                    context.solve_targets, x0, context.n_faces, context.options,
                                     progress=context.stage_progress("area-continuation"), stages=context.stages,
                                     settings=settings, log_floor=context.log_u_floor)
         obtuse = context.obtuse_at(nlp, x_start)
         nlp = context.nlp(obtuse)
     run, log_u_lower = margin_stage(context, nlp, x_start)
     run = resume_diverged(context, nlp, run, log_u_lower)
-    if on_limit == "project" and run.stopped_by_limit and run.finite:
-        # Stopped by the caller's limits: hand back its iterate made feasible, if that works.
+    if (on_limit == "project" or context.capped(run)) and run.stopped_by_limit and run.finite:
+        # Stopped by the caller's limits, or by the size's cap (stage_iteration_cap): hand back
+        # its iterate made feasible, if that works.
         projected = _projected_solution(context, nlp, run, log_u_lower)
         if projected.success:
             return projected
@@ -752,7 +872,10 @@ def all_constraints_stage(context, obtuse, x_start):
 
 
 def _projected_solution(context, nlp, stopped, log_u_lower):
-    """The AngleSolution of a stage stopped by the caller's limits, projected onto the constraints."""
+    """The AngleSolution of a stage stopped by the caller's limits (or the size's iteration cap: its
+    record gets ``iteration_cap``), projected onto the constraints."""
+    if context.capped(stopped) and context.stages:
+        context.stages[-1]["iteration_cap"] = context.stage_cap
     # Past the run's deadline (interrupts.deadline) the projection gets a short grace of its own.
     grace = PROJECTION_GRACE_FRACTION * float(context.options.get("max_wall_time", 0.0)) + PROJECTION_GRACE_S
     with interrupts.extended_deadline(grace):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import sphere_nlp
+from sphere_nlp.certify import certify
 from sphere_nlp.connectivity import build_connectivity
 from sphere_nlp.nlp import AngleNLP, IpoptRun, LogChordNLP
 from sphere_nlp.settings import SolverSettings
@@ -15,7 +16,7 @@ from sphere_nlp import starts
 from sphere_nlp.targets import MODES, make_targets
 
 from conftest import small_log_chord_problem
-from meshgen import ellipsoid, tentacle_creature
+from meshgen import ellipsoid, spike_sphere, tentacle_creature
 
 SETTINGS = SolverSettings()
 
@@ -466,3 +467,46 @@ def test_an_area_mode_started_at_its_own_optimum_skips_the_walk(mode):
     walked = sphere_nlp.parameterize((V, F), target=mode, start=first.vertices,
                                      settings=SolverSettings(area_walk_distance=0.0))
     assert walked.stages[0]["name"].startswith("area-continuation")
+
+
+@pytest.mark.parametrize("length", [30, 60])
+def test_a_spike_maps_in_few_iterations(length):
+    # A sphere of 162 vertices with one vertex pulled out 30 or 60 radii: its tip's five corners
+    # target 0.6 and 0.3 degrees at weights 9,100 and 39,000, and must sum to 2 pi. Their targets
+    # are shifted to sum to 2 pi (solve.summed_targets, the same minimiser): 73 and 106 iterations,
+    # where the tip's pull made the margin stage run off or crawl (4,031 and 7,260 iterations).
+    from sphere_nlp.solve import dropped_sum_drift
+
+    V, F = spike_sphere(length)
+    c = build_connectivity(F, len(V))
+    drift = dropped_sum_drift(c, make_targets("original-angles", V, F, c.vertex_degree))
+    assert np.flatnonzero(drift > SETTINGS.max_sum_drift).tolist() == [0]
+    result = sphere_nlp.parameterize((V, F))
+    assert result.success and result.converged
+    assert certify(result.vertices, result.faces).valid
+    assert result.iterations < 500
+    # Every vertex sum holds at the end, the shifted tip's too.
+    assert result.max_constraint_violation <= 1e-8
+
+
+def test_the_size_cap_stops_a_stage_and_projects_its_iterate():
+    # Without the caller's max_iter every run stops at the size's cap (here 20); a margin stage
+    # stopped there is projected onto the constraints: certified, not optimal, and said so.
+    from sphere_nlp.cli import summary_line
+    from sphere_nlp.solve import stage_iteration_cap
+
+    settings = SolverSettings(min_stage_iterations=20, stage_iterations_per_vertex=0.0, max_sum_drift=np.inf)
+    assert stage_iteration_cap(162, settings) == 20
+    result = sphere_nlp.parameterize(spike_sphere(30), settings=settings)
+    assert result.success and not result.converged and result.status == "Maximum_Iterations_Exceeded"
+    assert certify(result.vertices, result.faces).valid
+    # (Without the shifted targets the margin stage runs off here and resumes, each run capped.)
+    names = [s["name"] for s in result.stages]
+    assert names[0] == "margin" and names[-1] == "projection" and set(names[1:-1]) <= {"margin-resumed"}
+    assert all(s["iterations"] <= 20 for s in result.stages[:-1])
+    assert result.stages[-2]["iteration_cap"] == 20
+    assert result.iterations <= 3 * 20 + SETTINGS.projection_iterations
+    assert "iteration cap for a mesh of this size (20 a stage" in summary_line("s.off", result)
+    # The caller's max_iter replaces the cap (and reaching it fails, unless on_limit="project").
+    with pytest.raises(sphere_nlp.SolveError, match="Maximum_Iterations_Exceeded"):
+        sphere_nlp.parameterize(spike_sphere(30), settings=settings, max_iter=10)
