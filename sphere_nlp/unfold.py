@@ -18,7 +18,8 @@ Two stages:
    increases with the number of triangles"). Gauss-Newton on all corner-angle residuals
    ``angle(positions) - solved angle`` removes it: each vertex moves in its tangent plane and is
    retracted onto the sphere by normalising; the normal equations are sparse (2 unknowns per vertex,
-   one 6x6 block per triangle) and solved by sparse LU, reused across steps while it keeps working.
+   one 6x6 block per triangle) and solved by sparse LU once; later steps solve them by conjugate
+   gradients preconditioned with that factorisation, refactorising only when it has gone stale.
    A tiny Levenberg-Marquardt damping fixes the 3 rotational degrees of freedom (the gradient has no
    component along them). Fitting angles rather than chords matters: the angles are what the NLP
    guarantees, and they fix the shape of even the smallest triangles, whose chords they do not.
@@ -476,31 +477,86 @@ def chord_mismatch(positions, edges, chords):
     return float(np.max(np.abs(measured - chords) / chords))
 
 
-# Largest angle residual (radians) at which a slowing simplified Gauss-Newton stops rather than pay for
-# another factorisation: two orders below the 1e-6 the pipeline promises, and just above the rounding
-# floor of meshes with tiny triangles (~3e-9 on a 50k random hull).
-GOOD_ENOUGH = 1e-8
 # A freshly linearised step that gains less than half but more than SLOW_PROGRESS of the sum of
 # squares is slow progress, not the rounding floor, while the largest residual is above SLOW_TARGET
 # (ten times below the 1e-6 the pipeline promises): on armadillo.obj's equal-areas map (~3,000 corners
 # under 1 deg or over 170 deg) each such step gains 15-20%, and stopping at the first one left
-# 1.4e-5 rad; 36 more reach 1e-6 (2 s each at 86k triangles).
+# 1.4e-5 rad; 36 more reach 1e-6 (2 s each at 86k triangles). SLOW_TARGET is 1e-8, just above the
+# rounding floor of meshes with tiny triangles (~3e-9 on a 50k random hull), since steps that reuse a
+# factorisation are cheap (the Loop armadillo: 1.2e-8 after one step, 8.6e-9 after three).
 SLOW_PROGRESS = 0.05
-SLOW_TARGET = 1e-7
+SLOW_TARGET = 1e-8
+
+# After the first step, each step solves the normal equations at the current positions by conjugate
+# gradients preconditioned with the last factorisation, which stays an excellent preconditioner
+# while the positions move little (1-3 iterations after a walk without repairs). A step whose
+# conjugate gradients do not reach a relative residual of REUSE_TOLERANCE within REUSE_ITERATIONS
+# iterations is still taken (it reduces the linear model more than the reused factorisation's own
+# step), and if it gains less than tenfold the normal matrix is factorised afresh. A factorisation
+# costs 30-50 back-substitutions (4-5 s at 173k vertices) and was the unfold's main cost: the
+# simplified Gauss-Newton this replaces refactorised whenever a reused factorisation gained less
+# than tenfold, which near the rounding floor it always does.
+REUSE_ITERATIONS = 8
+REUSE_TOLERANCE = 1e-6
+
+
+def _normal_operator(J, unknowns, n, damping):
+    """x -> (J^T J + damping diag(J^T J) + the factorisation's absolute term) x, from the blocks."""
+    diag = np.bincount(unknowns.ravel(), weights=np.einsum("tri,tri->ti", J, J).ravel(), minlength=2 * n)
+    shift = damping * diag + 1e-12 * diag.mean()
+
+    def apply(x):
+        Jx = np.einsum("tri,ti->tr", J, x[unknowns])
+        return np.bincount(unknowns.ravel(), weights=np.einsum("tri,tr->ti", J, Jx).ravel(),
+                           minlength=2 * n) + shift * x
+    return apply
+
+
+def _preconditioned_cg(apply, precondition, rhs, tolerance, max_iterations):
+    """Conjugate gradients for apply(x) = rhs from 0: (x, iterations, converged).
+
+    Not converged, x is the last iterate (None if the first direction had no positive curvature).
+    """
+    x = np.zeros_like(rhs)
+    residual = rhs.copy()
+    goal = tolerance * np.linalg.norm(rhs)
+    z = precondition(residual)
+    direction = z.copy()
+    rz = residual @ z
+    for iteration in range(1, max_iterations + 1):
+        image = apply(direction)
+        curvature = direction @ image
+        if not (np.isfinite(curvature) and curvature > 0):
+            return (x if iteration > 1 else None), iteration, False
+        alpha = rz / curvature
+        x += alpha * direction
+        residual -= alpha * image
+        if np.linalg.norm(residual) <= goal:
+            return x, iteration, True
+        z = precondition(residual)
+        rz, previous = residual @ z, rz
+        direction = z + (rz / previous) * direction
+    return x, max_iterations, False
+
+
+def _residual_stats(r):
+    """Max and RMS of angle residuals, non-finite ones counted as inf."""
+    r = np.where(np.isfinite(r), r, np.inf)
+    return float(np.abs(r).max(initial=0.0)), float(np.sqrt(np.mean(r ** 2))) if r.size else 0.0
 
 
 def correct(faces, angles, positions, max_iterations=100, tolerance=1e-13, slow_target=SLOW_TARGET):
     """Gauss-Newton on all corner-angle residuals, positions kept on the unit sphere.
 
-    Each vertex moves in its tangent plane and is retracted by normalising. The normal matrix is
-    factorised once and reused while steps keep shrinking the sum of squares tenfold (a simplified
-    Gauss-Newton; on a consistent problem the first two or three steps already gain several digits
-    each); it is refactorised at the current positions when progress slows, with more
-    Levenberg-Marquardt damping when a step fails. It stops when the largest residual is below
-    ``tolerance``, or a freshly linearised step no longer halves the sum of squares while the largest
-    residual is below ``slow_target`` or the step gained less than :data:`SLOW_PROGRESS` of it,
-    which is where rounding in the angles themselves (largest on tiny and sliver triangles) sets the
-    floor; needle-rich maps converge linearly above it and keep going.
+    Each vertex moves in its tangent plane and is retracted by normalising. Every step is a
+    Gauss-Newton step at the current positions: the first solves the normal equations with a sparse
+    factorisation, the next ones by conjugate gradients preconditioned with it (a few iterations
+    while the positions have moved little since), and the normal matrix is factorised afresh only
+    when that stops converging quickly, with more Levenberg-Marquardt damping when a step fails.
+    It stops when the largest residual is below ``tolerance``, or a step no longer halves the sum
+    of squares while the largest residual is below ``slow_target`` or the step gained less than
+    :data:`SLOW_PROGRESS` of it, which is where rounding in the angles themselves (largest on tiny
+    and sliver triangles) sets the floor; needle-rich maps converge linearly above it and keep going.
 
     Parameters
     ----------
@@ -512,18 +568,21 @@ def correct(faces, angles, positions, max_iterations=100, tolerance=1e-13, slow_
     positions : (n, 3) array
         Starting positions (the walk's).
     max_iterations : int
-        Most steps (each one residual, one gradient, one back-substitution).
+        Most steps (each one residual, one gradient, one solve).
     tolerance : float
         Largest angle residual (radians) that counts as converged.
     slow_target : float
         Above this largest residual, slow but steady progress (see :data:`SLOW_PROGRESS`) goes on;
-        ``np.inf`` stops at the first freshly linearised step that does not halve the sum of squares.
+        ``np.inf`` stops at the first step that does not halve the sum of squares.
 
     Returns
     -------
     positions : (n, 3) array of unit vectors
     stats : dict
-        ``iterations``, ``factorizations``.
+        ``iterations``, ``factorizations``, ``cg_iterations`` (preconditioned conjugate-gradient
+        iterations of the steps that reused a factorisation), ``start_max_angle_error``,
+        ``start_rms_angle_error``, ``max_angle_error``, ``rms_angle_error`` (radians, over these
+        triangles, before and after).
 
     Examples
     --------
@@ -541,12 +600,12 @@ def correct(faces, angles, positions, max_iterations=100, tolerance=1e-13, slow_
     A = np.asarray(angles, float)
     X = _unit(np.asarray(positions, float)[used])
     r = spherical_angles(X, F) - A
+    stats = dict(zip(("start_max_angle_error", "start_rms_angle_error"), _residual_stats(r)))
     cost = float(np.sum(r * r))
     damping = 1e-10
     lu = bases = None
-    fresh = False                     # is the factorisation from the current positions?
     order = vertex_ordering(F, n)
-    iterations = factorizations = 0
+    iterations = factorizations = cg_iterations = 0
     while iterations < max_iterations and np.abs(r).max() > tolerance:
         if lu is None:
             bases = tangent_bases(X)
@@ -557,35 +616,47 @@ def correct(faces, angles, positions, max_iterations=100, tolerance=1e-13, slow_
                 damping *= 100
                 if damping > 1e4:
                     break
+                lu = None
                 continue
             factorizations += 1
-            fresh = True
+            step, exact = -lu.solve(_gradient(J, unknowns, r, n)), True
         else:
+            # The retraction's Jacobian at the current positions, in the tangent bases of the last
+            # factorisation (an exact linearisation: only the coordinates are those of its bases).
             J, unknowns = _angle_jacobian(X, F, bases)
-        step = -lu.solve(_gradient(J, unknowns, r, n))
+            step, used_iterations, exact = _preconditioned_cg(
+                _normal_operator(J, unknowns, n, damping), lu.solve, -_gradient(J, unknowns, r, n),
+                REUSE_TOLERANCE, REUSE_ITERATIONS)
+            cg_iterations += used_iterations
+            if step is None:          # no usable direction: factorise afresh
+                lu = None
+                continue
         trial = _unit(X + np.einsum("nxd,nd->nx", bases, step.reshape(n, 2)))
         r_trial = spherical_angles(trial, F) - A
         cost_trial = float(np.sum(r_trial * r_trial))
         iterations += 1
         if cost_trial < cost:
             X, r, cost_before, cost = trial, r_trial, cost, cost_trial
-            if fresh and cost > 0.5 * cost_before and (np.abs(r).max() <= slow_target
-                                                        or cost > (1 - SLOW_PROGRESS) * cost_before):
+            if not exact:
+                if cost > 0.1 * cost_before:
+                    lu = None         # the reused factorisation has gone stale
+                continue
+            if cost > 0.5 * cost_before and (np.abs(r).max() <= slow_target
+                                             or cost > (1 - SLOW_PROGRESS) * cost_before):
                 break                 # at the rounding floor
-            if not fresh and cost > 0.1 * cost_before:
-                if np.abs(r).max() <= GOOD_ENOUGH:
-                    break             # close enough not to pay for another factorisation
-                lu = None             # the reused linearisation has gone stale
-            fresh = False
             continue
-        if fresh:
-            if cost_trial < 4 * cost or damping > 1e4:
-                break                 # a rounding-level wobble, or no step helps: stop here
-            damping *= 100            # the linear model is not trusted this far: shorten the step
+        if not exact:
+            lu = None
+            continue
+        if cost_trial < 4 * cost or damping > 1e4:
+            break                     # a rounding-level wobble, or no step helps: stop here
+        damping *= 100                # the linear model is not trusted this far: shorten the step
         lu = None
     out = np.array(positions, float)
     out[used] = X
-    return out, {"iterations": iterations, "factorizations": factorizations}
+    stats.update(iterations=iterations, factorizations=factorizations, cg_iterations=cg_iterations)
+    stats["max_angle_error"], stats["rms_angle_error"] = _residual_stats(r)
+    return out, stats
 
 
 def unfold(connectivity, angles, seed_face=None, average=True, correction=True, excess=None):
@@ -618,7 +689,8 @@ def unfold(connectivity, angles, seed_face=None, average=True, correction=True, 
         ``max_angle_error`` and ``rms_angle_error`` (radians, against the solved angles) and
         ``max_chord_mismatch`` (relative, against the chords of the solved angles, which for tiny
         triangles are themselves uncertain); ``correction_iterations``,
-        ``correction_factorizations``; ``walk_s``, ``correction_s`` (seconds).
+        ``correction_factorizations``, ``correction_cg_iterations`` (see :func:`correct`);
+        ``walk_s``, ``correction_s`` (seconds).
 
     Examples
     --------
@@ -653,6 +725,7 @@ def unfold(connectivity, angles, seed_face=None, average=True, correction=True, 
         info["correction_s"] = time.perf_counter() - clock
         info["correction_iterations"] = stats["iterations"]
         info["correction_factorizations"] = stats["factorizations"]
+        info["correction_cg_iterations"] = stats["cg_iterations"]
         info["corrected_max_angle_error"], info["corrected_rms_angle_error"] = angle_errors(positions, F, A)
         info["corrected_max_chord_mismatch"] = chord_mismatch(positions, connectivity.edges, chords)
     return positions, info
