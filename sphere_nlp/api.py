@@ -99,7 +99,10 @@ class SphericalParameterization:
     stages : list of dict
         Per-IPOPT-run statistics.
     timings : dict
-        Seconds per stage: load, build, solve, unfold, certify, total.
+        Seconds per stage: load, build, solve, unfold, certify (these add up to total), total, and
+        their parts, named ``stage.part`` and adding up to their stage: ``solve.start``,
+        ``solve.authalic`` (area modes), ``solve.ipopt``, ``unfold.walk``, ``unfold.correction``,
+        ``unfold.other`` (:func:`split_timings`; docs/design.md, "Where the time goes").
     repairs : list of str
         Repairs made to the input, one line each (merged or dropped vertices, flipped faces,
         normalised coordinates).
@@ -384,6 +387,39 @@ def max_angle_error(positions, faces, angles):
     """max |spherical corner angle of the positions - solved angle|, inf if not finite."""
     error = float(np.max(np.abs(spherical_angles(positions, faces) - angles)))
     return error if np.isfinite(error) else float("inf")
+
+
+def split_timings(timings, stages, area_route=None, unfold_info=None):
+    """Add the parts of the solve and the unfold to ``timings``, each ``stage.part``.
+
+    ``solve.ipopt`` is IPOPT's iterations (every run's ``time_s``), ``solve.authalic`` the area
+    modes' authalic map, and ``solve.start`` the rest of the solve: the start (conformal map,
+    untangling, the initial point's projection) and the checks between IPOPT runs. The unfold's
+    ``unfold.walk`` and ``unfold.correction`` come from its statistics, ``unfold.other`` is the rest
+    (chords, the seed, residuals); in the area modes the chosen map is unfolded inside the solve,
+    so its unfold is part of ``solve.start``. The parts add up to their stage.
+
+    Examples
+    --------
+    >>> t = {"solve": 10.0, "unfold": 3.0}
+    >>> split_timings(t, [{"time_s": 6.0}, {"time_s": 1.5}], None, {"walk_s": 1.0, "correction_s": 1.5})
+    >>> t["solve.start"], t["solve.ipopt"], t["unfold.walk"], t["unfold.other"]
+    (2.5, 7.5, 1.0, 0.5)
+    """
+    solve = timings.get("solve", 0.0)
+    ipopt = min(sum(float(s.get("time_s", 0.0)) for s in stages), solve)
+    authalic = 0.0
+    if area_route is not None:
+        authalic = min(float(area_route.get("authalic", {}).get("seconds", 0.0)), solve - ipopt)
+        timings["solve.authalic"] = authalic
+    timings["solve.start"] = solve - ipopt - authalic
+    timings["solve.ipopt"] = ipopt
+    if area_route is None and "unfold" in timings:
+        info = unfold_info or {}
+        walk = min(float(info.get("walk_s", 0.0)), timings["unfold"])
+        correction = min(float(info.get("correction_s", 0.0)), timings["unfold"] - walk)
+        timings["unfold.walk"], timings["unfold.correction"] = walk, correction
+        timings["unfold.other"] = timings["unfold"] - walk - correction
 
 
 def _start_in_repaired_numbering(start, prepared):
@@ -744,6 +780,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     angle_error = max_angle_error(positions, faces, solution.angles)
     lap("certify")
     timings["total"] = time.perf_counter() - run_started
+    split_timings(timings, solution.stages, area_route, unfold_info)
 
     result = SphericalParameterization(
         vertices=positions, faces=faces, input_vertices=prepared.vertices, angles=solution.angles,

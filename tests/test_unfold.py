@@ -185,6 +185,38 @@ def test_report_has_unfold_errors_before_and_after_correction():
     assert report["max_angle_error"] == pytest.approx(unfold_report["corrected_max_angle_error"], abs=1e-15)
 
 
+def test_correction_factorises_once_and_reuses_it_to_the_floor():
+    # After the first step, the steps solve the current normal equations by conjugate gradients
+    # preconditioned with the one factorisation, and reach the angles' own noise level certified.
+    V, F = jittered_icosphere(5)
+    connectivity, angles = exact_problem(V, F, noise=1e-10)
+    X, info = unfold(connectivity, angles)
+    assert info["walk_max_angle_error"] > 1e-4                   # a real drift to remove
+    assert info["correction_factorizations"] == 1
+    assert info["correction_iterations"] >= 2 and info["correction_cg_iterations"] >= 1
+    assert info["corrected_max_angle_error"] < 1e-9
+    assert max_angle_error(X, F, angles) == pytest.approx(info["corrected_max_angle_error"], abs=1e-15)
+    assert certify(X, F).valid
+
+
+@pytest.mark.parametrize("target", ["original-angles", "original-areas"])
+def test_report_timings_name_the_stages_and_their_parts(target):
+    # The stages add up to the total, and each stage's parts (``stage.part``) add up to it: the
+    # start, IPOPT and (area modes) the authalic map within the solve; the walk and the correction
+    # within the unfold.
+    timings = sphere_nlp.parameterize(cylinder(), target=target).report()["timings_s"]
+    stages = ["load", "build", "solve", "unfold", "certify"]
+    parts = {"solve": ["solve.start", "solve.ipopt"] + (["solve.authalic"] if target == "original-areas" else []),
+             "unfold": [] if target == "original-areas" else ["unfold.walk", "unfold.correction", "unfold.other"]}
+    assert set(timings) == set(stages) | {"total"} | set(parts["solve"]) | set(parts["unfold"])
+    assert all(value >= 0 for value in timings.values())
+    assert sum(timings[k] for k in stages) == pytest.approx(timings["total"], abs=1e-4)
+    for stage, names in parts.items():
+        if names:
+            assert sum(timings[k] for k in names) == pytest.approx(timings[stage], abs=1e-5)
+    assert timings["solve.ipopt"] > 0
+
+
 def test_correction_stops_at_the_floor_of_angles_no_positions_have():
     # Slow progress above SLOW_TARGET keeps the correction going (armadillo.obj equal-areas: 1.4e-5
     # -> 8.8e-8 rad); angles off by 1e-6 or 1e-5 from any positions have a floor above it, where
