@@ -394,7 +394,8 @@ def split_timings(timings, stages, area_route=None, unfold_info=None):
 
     ``solve.ipopt`` is IPOPT's iterations (every run's ``time_s``), ``solve.authalic`` the area
     modes' authalic map, and ``solve.start`` the rest of the solve: the start (conformal map,
-    untangling, the initial point's projection) and the checks between IPOPT runs. The unfold's
+    untangling, the initial point's projection), the NLP's numeric evaluators and the checks
+    between IPOPT runs. The unfold's
     ``unfold.walk`` and ``unfold.correction`` come from its statistics, ``unfold.other`` is the rest
     (chords, the seed, residuals); in the area modes the chosen map is unfolded inside the solve,
     so its unfold is part of ``solve.start``. The parts add up to their stage.
