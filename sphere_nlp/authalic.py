@@ -413,7 +413,7 @@ def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps
         sem, bijective = stretch_energy_map(best, faces, target, deadline=deadline, progress=progress)
         if not certify(sem, faces).valid and not out_of_time():
             # SEM's solves are not orientation-safe: re-embed small disks around the flipped triangles.
-            sem, _ = untangle(sem, faces, mesh_vertices=vertices)
+            sem, _ = untangle(sem, faces, mesh_vertices=vertices, progress=progress)
         return [sem, bijective]
 
     candidates = sem_maps(target_excess)

@@ -115,7 +115,7 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
     began = time.perf_counter()
     if on_stage is not None:
         on_stage("authalic")
-    start, start_kind = starting_positions(connectivity, vertices)
+    start, start_kind = starting_positions(connectivity, vertices, progress=progress)
     left = interrupts.seconds_left()
     stage_time = None if math.isinf(left) else settings.authalic_share * left
     stage = authalic_map(vertices, faces, start, targets.excess, max_time=stage_time,

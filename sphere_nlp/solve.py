@@ -351,7 +351,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     gauge = settings.start_gauge if targets.area_weight == 0 else "area"
     # Large arrays stay on the heap for the whole solve (sphere_nlp.heap).
     with arrays_on_heap():
-        initial = initial_point(connectivity, targets, start, vertices, gauge)
+        initial = initial_point(connectivity, targets, start, vertices, gauge, progress)
         context = _Context.make(connectivity, targets, formulation, settings, ipopt_options, max_iter, max_time,
                                 progress, initial)
         context.log_e_band = excess_band

@@ -67,11 +67,12 @@ def vertex_areas(vertices, faces, n_vertices):
     return scatter_to_vertices(faces, triangle_areas(vertices, faces), n_vertices)
 
 
-def conformal_start(connectivity, vertices, weights=None, angles=None):
+def conformal_start(connectivity, vertices, weights=None, angles=None, progress=None):
     """The conformal map, Mobius-centred by ``weights``, if it (or its untangled repair) certifies.
 
     ``angles`` (t, 3): map conformally to the metric these corner angles describe instead of the
-    surface's (see :func:`sphere_nlp.conformal.conformal_map`).
+    surface's (see :func:`sphere_nlp.conformal.conformal_map`). ``progress``: the untangling's
+    progress function (:func:`sphere_nlp.untangle.untangle`).
 
     Returns
     -------
@@ -92,7 +93,7 @@ def conformal_start(connectivity, vertices, weights=None, angles=None):
     # A few flipped triangles (knight 57, cheburashka 38, max_planck 2, nefertiti 1): re-embed
     # small disks around them, which keeps the map conformal elsewhere.
     from .untangle import untangle
-    repaired, _ = untangle(positions, faces, mesh_vertices=vertices)
+    repaired, _ = untangle(positions, faces, mesh_vertices=vertices, progress=progress)
     if repaired is not None and certify(repaired, faces).valid:
         return repaired, "conformal-untangled"
     return None
@@ -119,7 +120,7 @@ def embedding_start(connectivity, vertices=None, weights=None):
     return positions, "embedding-uncentred"
 
 
-def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", angles=None):
+def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", angles=None, progress=None):
     """Valid spherical positions of the mesh to start the log-chord solve from.
 
     ``"conformal"``: :func:`conformal_start`. Close to the optimum of every angle mode (brain,
@@ -133,7 +134,8 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", a
     modes' optimum (kept only if it certifies); ``"area"`` (default) keeps the area centring.
 
     ``angles`` (t, 3), optional: the conformal start maps conformally to the metric of these corner
-    angles rather than the surface's (:func:`conformal_start`).
+    angles rather than the surface's (:func:`conformal_start`). ``progress``, optional: called
+    while the conformal start's flipped triangles are repaired (:func:`sphere_nlp.untangle.untangle`).
 
     Returns
     -------
@@ -148,7 +150,7 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", a
     # Past the run's deadline (interrupts.deadline) only the embedding, one linear solve valid by
     # construction: the solve then stops at once and reports the limit.
     if kind in ("auto", "conformal") and vertices is not None and not interrupts.deadline_passed():
-        found = conformal_start(connectivity, vertices, weights, angles)
+        found = conformal_start(connectivity, vertices, weights, angles, progress)
     positions, kind = found or embedding_start(connectivity, vertices, weights)
     if gauge == "excess" and not interrupts.deadline_passed():
         from .embedding import excess_gauge
@@ -158,10 +160,10 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", a
     return positions, kind
 
 
-def feasible_start(connectivity, vertices=None, kind="auto", gauge="area", angles=None):
+def feasible_start(connectivity, vertices=None, kind="auto", gauge="area", angles=None, progress=None):
     """Angles and excesses of a valid spherical triangulation of the mesh, and its positions.
 
-    See :func:`starting_positions` for ``kind`` and ``angles``.
+    See :func:`starting_positions` for ``kind``, ``angles`` and ``progress``.
 
     Returns
     -------
@@ -170,7 +172,7 @@ def feasible_start(connectivity, vertices=None, kind="auto", gauge="area", angle
     positions : (n, 3) array
     kind : str
     """
-    positions, kind = starting_positions(connectivity, vertices, kind, gauge, angles)
+    positions, kind = starting_positions(connectivity, vertices, kind, gauge, angles, progress)
     return (*angles_and_excess(positions, connectivity.faces), positions, kind)
 
 
@@ -225,7 +227,7 @@ def linear_initial_guess(connectivity, targets):
     return x[:3 * t].reshape(t, 3), x[3 * t:]
 
 
-def initial_point(connectivity, targets, start, vertices=None, gauge="area"):
+def initial_point(connectivity, targets, start, vertices=None, gauge="area", progress=None):
     """The solver's starting point.
 
     Parameters
@@ -239,6 +241,8 @@ def initial_point(connectivity, targets, start, vertices=None, gauge="area"):
         3D positions, for the conformal start and the centring weights.
     gauge : {"area", "excess"}
         The Mobius gauge of a named valid start (see :func:`starting_positions`).
+    progress : callable(stage, step, value, 0.0, seconds), optional
+        Progress of a long start (see :func:`starting_positions`).
 
     The conformal start maps conformally to the metric of ``targets.angles``: the surface's own
     angles in the original modes, 2 pi / deg in the equal modes, whose optima are far from the
@@ -258,7 +262,7 @@ def initial_point(connectivity, targets, start, vertices=None, gauge="area"):
     if start == "linear":
         return InitialPoint(*linear_initial_guess(connectivity, targets), None, "linear")
     angles, excess, positions, kind = feasible_start(connectivity, vertices, start, gauge,
-                                                     _metric_angles(connectivity, targets, vertices))
+                                                     _metric_angles(connectivity, targets, vertices), progress)
     return InitialPoint(angles, excess, positions, kind)
 
 

@@ -38,6 +38,7 @@ Failure is reported, not raised: :func:`untangle` returns ``None`` for the posit
 projection, i.e. the map is folded over a large part of the sphere rather than locally tangled).
 """
 
+import time
 from dataclasses import dataclass, asdict
 
 import numpy as np
@@ -284,11 +285,12 @@ def _winslow_energy(plane, faces, inverse, weights, eps, shape_weight):
 
 
 def _winslow_untangle(plane, free, faces, inverse, weights, scale, max_updates=12, max_iter=1000,
-                      polish_iter=200):
+                      polish_iter=200, tick=None):
     """Move the ``free`` rows of ``plane`` to minimise the Winslow energy with a decreasing eps.
 
     ``scale`` (len(free),) is each free vertex's typical edge length: the optimiser works in those
-    units, because conformal maps shrink some parts by orders of magnitude.
+    units, because conformal maps shrink some parts by orders of magnitude. ``tick()``, if given,
+    is called after every step of the optimiser (the start's progress lines).
     Returns the new plane positions (all rows) once every determinant is positive, else None.
     """
     from scipy.optimize import minimize
@@ -308,7 +310,8 @@ def _winslow_untangle(plane, free, faces, inverse, weights, scale, max_updates=1
     def descend(y, eps, iterations):
         with np.errstate(all="ignore"):
             return minimize(energy, y, args=(eps,), jac=True, method="L-BFGS-B",
-                            options=dict(maxiter=iterations)).x
+                            options=dict(maxiter=iterations),
+                            callback=None if tick is None else (lambda _: tick())).x
 
     y = (plane[free] / scale[:, None]).ravel()
     for _ in range(max_updates):
@@ -404,7 +407,8 @@ def _reembed_region(positions, context, free, face_mask):
     weights = context.reference.areas[face_mask] / context.reference.areas[face_mask].mean()
     vertex_length = np.exp(0.5 * log_ratio[:len(free)]) * np.sqrt(
         (context.vertex_faces_t[free] @ context.reference.areas) / context.vertex_face_count[free])
-    plane = _winslow_untangle(plane, np.arange(len(free)), local_faces, inverse, weights, vertex_length)
+    plane = _winslow_untangle(plane, np.arange(len(free)), local_faces, inverse, weights, vertex_length,
+                              tick=context.tick)
     if plane is None:
         return None
     lifted = lift(plane)
@@ -420,9 +424,11 @@ class _Context:
         self.vertex_faces_t = tables.vertex_faces.T.tocsr()
         self.vertex_face_count = np.asarray(self.vertex_faces_t.sum(axis=1)).ravel()
         self.solid_angles = None
+        self.tick = None
 
 
-def untangle(positions, faces, mesh_vertices=None, max_rounds=10, weights="mean-value", winslow=True):
+def untangle(positions, faces, mesh_vertices=None, max_rounds=10, weights="mean-value", winslow=True,
+             progress=None):
     """Turn a spherical map with a few flipped triangles into a valid one, moving only vertices near them.
 
     See the module docstring for the method.
@@ -443,6 +449,10 @@ def untangle(positions, faces, mesh_vertices=None, max_rounds=10, weights="mean-
     winslow : bool
         When a region's Tutte embedding has flipped triangles, try the Winslow untangler on it
         before growing the region.
+    progress : callable(stage, step, flipped, 0.0, seconds), optional
+        Called with stage "start (untangle)" after every region and every Winslow step: the steps
+        so far and the triangles flipped when the round began. A thin limb's collapsed tip can take
+        minutes here, so a long run says where it is.
 
     Returns
     -------
@@ -485,6 +495,15 @@ def untangle(positions, faces, mesh_vertices=None, max_rounds=10, weights="mean-
 
     flipped_before = int(bad_faces(X).sum())
     kept, largest, reason, rounds = 0, 0, "", 0
+    began, steps, flipped_now = time.perf_counter(), 0, flipped_before
+
+    def tick():
+        nonlocal steps
+        steps += 1
+        if progress is not None:
+            progress("start (untangle)", steps, flipped_now, 0.0, time.perf_counter() - began)
+
+    context.tick = tick
     for rounds in range(1, max_rounds + 1):
         if interrupts.deadline_passed():
             reason = "the run's time limit was reached"     # see interrupts.deadline
@@ -492,6 +511,7 @@ def untangle(positions, faces, mesh_vertices=None, max_rounds=10, weights="mean-
         with np.errstate(all="ignore"):
             omega = signed_solid_angles(X, faces)
         bad = ~(omega > 0)
+        flipped_now = int(bad.sum())
         # The valid faces' solid angles measure the map's local scale (for the Winslow references).
         context.solid_angles = np.where(bad, 0.0, omega)
         if not bad.any():
@@ -517,6 +537,7 @@ def untangle(positions, faces, mesh_vertices=None, max_rounds=10, weights="mean-
                 X[free] = lifted
                 kept += 1
                 largest = max(largest, len(free))
+            tick()
         if errors and len(errors) == len(regions):
             reason = errors[0]          # growing only makes regions larger: stop
             break

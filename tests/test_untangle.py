@@ -163,6 +163,20 @@ def test_winslow_untangles_a_collapsed_horseshoe():
     assert np.abs(plane - grid).max() < 1e-3
 
 
+def test_untangle_reports_its_steps(folded_icosphere):
+    # A thin limb's collapsed tip can keep the untangling busy for minutes: it reports every region
+    # and Winslow step, under the stage name the CLI prints.
+    V, F, X, _ = folded_icosphere
+    calls = []
+    Y, info = untangle(X, F, mesh_vertices=V, progress=lambda *args: calls.append(args))
+    assert certify(Y, F).valid
+    assert calls and {c[0] for c in calls} == {"start (untangle)"}
+    steps = [c[1] for c in calls]
+    assert steps == list(range(1, len(steps) + 1))
+    assert calls[0][2] == info.flipped_before
+    assert all(c[3] == 0.0 and c[4] >= 0 for c in calls)
+
+
 def test_winslow_gradient_matches_finite_differences():
     from sphere_nlp.untangle import _Reference, _winslow_energy
 
