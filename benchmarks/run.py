@@ -261,8 +261,11 @@ def status_text(row):
             end = "optimum" if polish.get("converged") else "budget's end, projected"
             return "authalic + polish (%s, polished to IPOPT's %s)" % (budget, end)
         authalic = route.get("authalic") or {}
-        stopped = (", descent: %d steps, %s" % (authalic["descent_steps"], authalic["descent_stopped"])
-                   if authalic.get("descent_stopped") else "")
+        # The descent's reason in words: its step budget, time, tolerance or what stopped it.
+        why = {"steps": "its step budget", "time": "its time", "tolerance": "its tolerance"}
+        reason = authalic.get("descent_stopped")
+        stopped = (", descent: %d steps, stopped by %s" % (authalic["descent_steps"], why.get(reason, reason))
+                   if reason else "")
         return "authalic map (%s; %s%s)" % (budget, route.get("reason"), stopped)
     status = row.get("status", "")
     stopped = []
