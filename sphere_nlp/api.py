@@ -101,7 +101,7 @@ class SphericalParameterization:
     timings : dict
         Seconds per stage: load, build, solve, unfold, certify (these add up to total), total, and
         their parts, named ``stage.part`` and adding up to their stage: ``solve.start``,
-        ``solve.authalic`` (area modes), ``solve.ipopt``, ``unfold.walk``, ``unfold.correction``,
+        ``solve.authalic`` (area modes), ``solve.ipopt``, ``solve.other``, ``unfold.walk``, ``unfold.correction``,
         ``unfold.other`` (:func:`split_timings`; docs/design.md, "Where the time goes").
     repairs : list of str
         Repairs made to the input, one line each (merged or dropped vertices, flipped faces,
@@ -389,23 +389,23 @@ def max_angle_error(positions, faces, angles):
     return error if np.isfinite(error) else float("inf")
 
 
-def split_timings(timings, stages, area_route=None, unfold_info=None):
+def split_timings(timings, stages, area_route=None, unfold_info=None, start_s=0.0):
     """Add the parts of the solve and the unfold to ``timings``, each ``stage.part``.
 
-    ``solve.ipopt`` is IPOPT's iterations (every run's ``time_s``), ``solve.authalic`` the area
-    modes' authalic map, and ``solve.start`` the rest of the solve: the start (conformal map,
-    untangling, the initial point's projection), the NLP's numeric evaluators and the checks
-    between IPOPT runs. The unfold's
+    ``solve.start`` is the start (conformal map, untangling, gauge; ``start_s``), ``solve.ipopt``
+    IPOPT's iterations (every run's ``time_s``), ``solve.authalic`` the area modes' authalic map,
+    and ``solve.other`` the rest of the solve: the NLP's numeric evaluators and the checks between
+    IPOPT runs. The unfold's
     ``unfold.walk`` and ``unfold.correction`` come from its statistics, ``unfold.other`` is the rest
     (chords, the seed, residuals); in the area modes the chosen map is unfolded inside the solve,
-    so its unfold is part of ``solve.start``. The parts add up to their stage.
+    so its unfold is part of ``solve.other``. The parts add up to their stage.
 
     Examples
     --------
     >>> t = {"solve": 10.0, "unfold": 3.0}
-    >>> split_timings(t, [{"time_s": 6.0}, {"time_s": 1.5}], None, {"walk_s": 1.0, "correction_s": 1.5})
-    >>> t["solve.start"], t["solve.ipopt"], t["unfold.walk"], t["unfold.other"]
-    (2.5, 7.5, 1.0, 0.5)
+    >>> split_timings(t, [{"time_s": 6.0}, {"time_s": 1.5}], None, {"walk_s": 1.0, "correction_s": 1.5}, 2.0)
+    >>> t["solve.start"], t["solve.ipopt"], t["solve.other"], t["unfold.walk"], t["unfold.other"]
+    (2.0, 7.5, 0.5, 1.0, 0.5)
     """
     solve = timings.get("solve", 0.0)
     ipopt = min(sum(float(s.get("time_s", 0.0)) for s in stages), solve)
@@ -413,8 +413,10 @@ def split_timings(timings, stages, area_route=None, unfold_info=None):
     if area_route is not None:
         authalic = min(float(area_route.get("authalic", {}).get("seconds", 0.0)), solve - ipopt)
         timings["solve.authalic"] = authalic
-    timings["solve.start"] = solve - ipopt - authalic
+    start = min(float(start_s), solve - ipopt - authalic)
+    timings["solve.start"] = start
     timings["solve.ipopt"] = ipopt
+    timings["solve.other"] = solve - ipopt - authalic - start
     if area_route is None and "unfold" in timings:
         info = unfold_info or {}
         walk = min(float(info.get("walk_s", 0.0)), timings["unfold"])
@@ -781,7 +783,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     angle_error = max_angle_error(positions, faces, solution.angles)
     lap("certify")
     timings["total"] = time.perf_counter() - run_started
-    split_timings(timings, solution.stages, area_route, unfold_info)
+    split_timings(timings, solution.stages, area_route, unfold_info,
+                  area_route.get("start_seconds", 0.0) if area_route is not None else solution.start_s)
 
     result = SphericalParameterization(
         vertices=positions, faces=faces, input_vertices=prepared.vertices, angles=solution.angles,

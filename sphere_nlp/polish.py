@@ -116,6 +116,7 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
     if on_stage is not None:
         on_stage("authalic")
     start, start_kind = starting_positions(connectivity, vertices, progress=progress)
+    start_s = time.perf_counter() - began
     left = interrupts.seconds_left()
     stage_time = None if math.isinf(left) else settings.authalic_share * left
     stage = authalic_map(vertices, faces, start, targets.excess, max_time=stage_time,
@@ -124,7 +125,7 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
                          stall=settings.authalic_stall, progress=progress)
     authalic_angles, authalic_excess = angles_and_excess(stage.positions, faces)
     authalic_objective = objective_value(targets, authalic_angles, authalic_excess)
-    record = {"start": start_kind,
+    record = {"start": start_kind, "start_seconds": round(start_s, 3),
               "authalic": {"seconds": round(stage.seconds, 3), "sem_seconds": round(stage.sem_seconds, 3),
                            "descent_steps": stage.steps, "descent_stopped": stage.trace.stopped,
                            "objective": authalic_objective,

@@ -50,6 +50,7 @@ down. The tuning constants are the fields of :class:`sphere_nlp.settings.SolverS
 ``on_run`` sees every IPOPT run. Plain numpy in and out; CasADi stays in :mod:`sphere_nlp.nlp`.
 """
 
+import time
 from dataclasses import dataclass, field, replace
 from fractions import Fraction
 
@@ -94,6 +95,8 @@ class AngleSolution:
     start : str
         Which starting point: "conformal", "conformal-untangled", "embedding",
         "embedding-uncentred" or "linear".
+    start_s : float
+        Seconds spent finding it (conformal map, untangling, gauge).
     converged : bool
         True when the last stage reached IPOPT's optimality tolerance. False for a failed solve, and
         for a successful one whose margin stage stopped at ``max_iter`` or ``max_time``, or at the
@@ -118,6 +121,7 @@ class AngleSolution:
     initial_angles: np.ndarray = None
     initial_excess: np.ndarray = None
     start: str = ""
+    start_s: float = 0.0
     converged: bool = False
     floor_corners: int = 0
     floor_triangles: int = 0
@@ -351,13 +355,16 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
     gauge = settings.start_gauge if targets.area_weight == 0 else "area"
     # Large arrays stay on the heap for the whole solve (sphere_nlp.heap).
     with arrays_on_heap():
+        began = time.perf_counter()
         initial = initial_point(connectivity, targets, start, vertices, gauge, progress)
+        start_s = time.perf_counter() - began
         context = _Context.make(connectivity, targets, formulation, settings, ipopt_options, max_iter, max_time,
                                 progress, initial)
         context.log_e_band = excess_band
-        if formulation == "log-chord":
-            return _solve_with_corner_floor(context, on_limit)
-        return _solve_paper_form(context)
+        solution = (_solve_with_corner_floor(context, on_limit) if formulation == "log-chord"
+                    else _solve_paper_form(context))
+    solution.start_s = start_s
+    return solution
 
 
 def stage_iteration_cap(n_vertices, settings=DEFAULT_SETTINGS):
