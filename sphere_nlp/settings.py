@@ -41,6 +41,10 @@ DEFAULT_IPOPT_OPTIONS = MappingProxyType({
     # The filter's cap on the constraint violation (1-norm), theta_max_fact * max(1, start's):
     # IPOPT's 1e4 let one step leave the solution set for good.
     "theta_max_fact": 10.0,
+    # MUMPS reserves its estimated workspace plus this percentage (IPOPT's default 1000: 11 times
+    # the estimate, 34 GB at 692k vertices, which Linux refuses outright on a 24 GB machine: the
+    # first factorization failed and the solve with it). Short of it, IPOPT doubles it and refactors.
+    "mumps_mem_percent": 100,
 })
 
 # The area modes measure the filter's cap in the max-norm and set it to the start's violation (or
