@@ -289,12 +289,21 @@ def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True
     count = np.zeros(t, np.int64)
     positions[F[seed_face]] = _seed_positions(A[seed_face], chord_at[seed_face])
     placed[F[seed_face]] = True
+    n_placed = 3
     touched = touched_faces(F[seed_face])
     np.add.at(count, touched, 1)
     pending = np.zeros(0, np.int64)
     levels = repairs = 0
     placed_at_repair = 3
-    while not placed.all():
+    # Every level costs in proportion to its own front only: these per-vertex scratch arrays are
+    # zeroed where a level wrote them, not allocated afresh (at 692k vertices and 577 levels, full-size
+    # work per level was most of the walk's time), and the largest angle error of the completed
+    # triangles is kept up to date from each level's newly completed ones (their angles do not change
+    # until a repair moves them; None: to be measured afresh after a repair).
+    best = np.zeros(n)
+    total = np.zeros((n, 3)) if average else None
+    done_error = _max_angle_error(positions, F[[seed_face]], A[[seed_face]]) if repair else None
+    while n_placed < n:
         frontier = np.union1d(pending, touched)
         frontier = frontier[count[frontier] == 2]
         if len(frontier) == 0:
@@ -305,16 +314,21 @@ def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True
         next_, prev = (missing + 1) % 3, (missing + 2) % 3
         w, u, v = Ff[rows, missing], Ff[rows, next_], Ff[rows, prev]   # (w, u, v) in cyclic order
         sin_w = sin_at[frontier, missing]
-        best = np.zeros(n)
         np.maximum.at(best, w, sin_w)
-        ok = best[w] >= WELL_CONDITIONED_SIN
-        if repair and not ok.any() and placed.sum() > placed_at_repair:
-            done = np.flatnonzero(count == 3)
-            if not _max_angle_error(positions, F[done], A[done]) <= WALK_FORCED_REPAIR_ERROR * best[w].max():
+        best_w = best[w]
+        best[w] = 0.0
+        ok = best_w >= WELL_CONDITIONED_SIN
+        if repair and not ok.any() and n_placed > placed_at_repair:
+            if done_error is None:
+                done = np.flatnonzero(count == 3)
+                done_error = _max_angle_error(positions, F[done], A[done])
+            if not done_error <= WALK_FORCED_REPAIR_ERROR * best_w.max():
+                done = np.flatnonzero(count == 3)
                 positions = correct(F[done], A[done], positions, max_iterations=20, tolerance=1e-8,
                                     slow_target=np.inf)[0]
-                placed_at_repair = placed.sum()
+                placed_at_repair = n_placed
                 repairs += 1
+                done_error = None
         pending = frontier
         if ok.any():                                    # defer ill-conditioned vertices to a later level
             frontier, rows, w, u, v, next_, prev, sin_w = (x[ok] for x in (frontier, rows, w, u, v, next_,
@@ -329,32 +343,38 @@ def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True
         guess = _place_by_angle(positions[u], positions[v], A[frontier, next_], chord_uw)
         new = np.unique(w)
         if average:
-            total = np.zeros((n, 3))
             np.add.at(total, w, (sin_w ** 2)[:, None] * guess)
             positions[new] = _unit(total[new])
+            total[new] = 0.0
         else:
             order = np.lexsort((-sin_w, w))               # best-conditioned triangle first per vertex
             first = order[np.r_[True, w[order][1:] != w[order][:-1]]]
             positions[w[first]] = guess[first]
         placed[new] = True
+        n_placed += len(new)
         touched = touched_faces(new)
         np.add.at(count, touched, 1)
         pending = pending[count[pending] == 2]
         levels += 1
-        growth = placed.sum() / placed_at_repair
-        if repair and growth >= WALK_URGENT_GROWTH:
-            completed = np.unique(touched[count[touched] == 3])
-            error = _max_angle_error(positions, F[completed], A[completed])
+        if not repair:
+            continue
+        completed = np.unique(touched[count[touched] == 3])
+        error = _max_angle_error(positions, F[completed], A[completed])
+        if done_error is not None:
+            done_error = np.maximum(done_error, error)
+        growth = n_placed / placed_at_repair
+        if growth >= WALK_URGENT_GROWTH:
             # Near the end the final correction will do: only urgent repairs then.
-            tolerable = WALK_URGENT_ERROR if (growth < WALK_REPAIR_GROWTH or placed.sum() > 0.8 * n) \
+            tolerable = WALK_URGENT_ERROR if (growth < WALK_REPAIR_GROWTH or n_placed > 0.8 * n) \
                 else WALK_REPAIR_ERROR
             if not error <= tolerable:
                 done = np.flatnonzero(count == 3)
                 # Only needs to be well inside Gauss-Newton's reach for the next stretch of walk.
                 positions = correct(F[done], A[done], positions, max_iterations=20, tolerance=1e-8,
                                     slow_target=np.inf)[0]
-                placed_at_repair = placed.sum()
+                placed_at_repair = n_placed
                 repairs += 1
+                done_error = None
     return positions, levels, repairs
 
 
