@@ -39,6 +39,7 @@ triangles of every edge and is much slower).
 """
 
 import contextlib
+import io
 import os
 import sys
 import time
@@ -61,8 +62,8 @@ HESSIANS = ("exact", "clipped", "clipped-corners")
 # What the return status of a run means, the one table of them: "solved" (a result), "limit"
 # (stopped short by the caller's max_iter or max_time; its iterate can still be projected onto the
 # constraints), "diverged" (stopped by the divergence watch, see AngleNLP.solve); any other status
-# (IPOPT's failures, and LINEAR_SOLVER_FAILED: stopped when the BLAS under MUMPS complained) is
-# "failed".
+# (IPOPT's failures, LINEAR_SOLVER_FAILED: stopped when the BLAS under MUMPS complained, and
+# LINEAR_SOLVER_OUT_OF_MEMORY: failed after MUMPS could not get its memory) is "failed".
 STATUS_KINDS = {
     "Solve_Succeeded": "solved",
     "Solved_To_Acceptable_Level": "solved",
@@ -110,7 +111,9 @@ class IpoptRun:
     status : str
         IPOPT's return status, "Diverged" (see :data:`STATUS_KINDS`), or "Linear_Solver_Failed"
         (the linear algebra under IPOPT printed a complaint, :data:`LINEAR_ALGEBRA_COMPLAINTS`: the
-        run stops at its next iteration, and the text is not shown).
+        run stops at its next iteration, and the text is not shown), or "Linear_Solver_Out_Of_Memory"
+        (a failed run during which MUMPS could not get the memory to factorise,
+        :data:`OUT_OF_MEMORY_COMPLAINTS`; :func:`failure_advice` says what to do).
     iterations : int
     time_s, build_s : float
         Seconds in IPOPT, and in building the solver before it.
@@ -203,19 +206,119 @@ def _stdout_silenced():
 # What the BLAS under MUMPS (CasADi's bundled OpenBLAS) prints, to the C standard output, when
 # MUMPS hands it a matrix of impossible dimensions ("** On entry to DTRSV parameter number 6 had
 # an illegal value"; it then returns without computing, and IPOPT goes on with a wrong step).
-# MUMPS's own error returns are IPOPT's to handle (it retries with more memory), not these.
 LINEAR_ALGEBRA_COMPLAINTS = (b"had an illegal value",)
 # The status of a run stopped because the linear algebra under IPOPT complained.
 LINEAR_SOLVER_FAILED = "Linear_Solver_Failed"
 
+# What IPOPT prints (at print_level 1 and up, to the C standard output) when MUMPS cannot get the
+# memory a factorisation needs: INFO(1) = -13 (an allocation refused: "MUMPS returned INFO(1) =-13
+# - out of memory when trying to allocate 4225 MB." and a hint about mumps_mem_percent), or -8/-9
+# still after IPOPT's retries with more workspace ("MUMPS was not able to obtain enough memory."),
+# and the symbolic phase's "Error=-13 returned from MUMPS". IPOPT then only sees a failed step and
+# ends as Restoration_Failed (the 692k-vertex armadillo before MUMPS's reservation was cut), which
+# says nothing of memory. MUMPS's other error returns are IPOPT's to handle.
+OUT_OF_MEMORY_COMPLAINTS = (b"out of memory when trying to allocate", b"was not able to obtain enough memory",
+                            b"Error=-13 returned from MUMPS", b"Error=-9 returned from MUMPS",
+                            b"Error=-8 returned from MUMPS")
+# The line IPOPT prints after the -13 one; part of the same message, so not shown either.
+_OUT_OF_MEMORY_HINT = b'helps to decrease the value of the option "mumps_mem_percent"'
+# The status of a failed run during which MUMPS ran out of memory (a run that recovered keeps its own).
+LINEAR_SOLVER_OUT_OF_MEMORY = "Linear_Solver_Out_Of_Memory"
+
+# What a user can do about a status, for the failure line.
+STATUS_ADVICE = {
+    LINEAR_SOLVER_OUT_OF_MEMORY: ("the linear solver (MUMPS) ran out of memory factorising IPOPT's "
+                                  "system: free memory (close other programs, run one large mesh at "
+                                  "a time), use a machine with more, or solve a decimated mesh"),
+}
+
+
+def classify_c_output(text):
+    """What the captured C output of an IPOPT run says went wrong in the linear algebra under it:
+    :data:`LINEAR_SOLVER_FAILED` (the BLAS refused its arguments, :data:`LINEAR_ALGEBRA_COMPLAINTS`),
+    :data:`LINEAR_SOLVER_OUT_OF_MEMORY` (MUMPS could not get memory, :data:`OUT_OF_MEMORY_COMPLAINTS`)
+    or None. A refused BLAS call counts first: its steps are wrong whatever the memory.
+
+    Examples
+    --------
+    >>> classify_c_output(b"MUMPS returned INFO(1) =-13 - out of memory when trying to allocate 4225 MB.\\n")
+    'Linear_Solver_Out_Of_Memory'
+    >>> classify_c_output(b" ** On entry to DTRSV parameter number  6 had an illegal value\\n")
+    'Linear_Solver_Failed'
+    >>> classify_c_output(b"iter    objective    inf_pr\\n") is None
+    True
+    """
+    text = text.encode() if isinstance(text, str) else bytes(text)
+    if any(c in text for c in LINEAR_ALGEBRA_COMPLAINTS):
+        return LINEAR_SOLVER_FAILED
+    if any(c in text for c in OUT_OF_MEMORY_COMPLAINTS):
+        return LINEAR_SOLVER_OUT_OF_MEMORY
+    return None
+
+
+def failure_advice(status):
+    """A status's advice to the user (:data:`STATUS_ADVICE`), or None.
+
+    >>> failure_advice("Linear_Solver_Out_Of_Memory").startswith("the linear solver (MUMPS) ran out of memory")
+    True
+    >>> failure_advice("Restoration_Failed") is None
+    True
+    """
+    return STATUS_ADVICE.get(status)
+
+
+def _shown(line):
+    """Whether a line of captured C output goes on to the terminal: not the complaints and memory
+    failures :func:`classify_c_output` turns into a status."""
+    return classify_c_output(line) is None and _OUT_OF_MEMORY_HINT not in line
+
+
+class _ScannedStdout(io.TextIOBase):
+    """Python's standard output during an IPOPT run: CasADi hands IPOPT's text (its errors, among
+    them MUMPS's out-of-memory lines, :data:`OUT_OF_MEMORY_COMPLAINTS`) to ``sys.stdout``, not to
+    fd 1. Whole lines that :func:`classify_c_output` classifies are kept back and recorded in
+    ``complaints``; everything else goes on to ``target``."""
+
+    def __init__(self, target):
+        self.target, self.complaints, self._partial = target, [], ""
+
+    def writable(self):
+        return True
+
+    def write(self, text):
+        lines = (self._partial + text).splitlines(keepends=True)
+        self._partial = lines.pop() if lines and not lines[-1].endswith(("\n", "\r")) else ""
+        for line in lines:
+            complaint = classify_c_output(line)
+            if complaint is not None:
+                self.complaints.append(complaint)
+            elif _shown(line.encode(errors="replace")):
+                self.target.write(line)
+        return len(text)
+
+    def flush(self):
+        if self._partial:
+            self.target.write(self._partial)
+            self._partial = ""
+        self.target.flush()
+
+
+class _CapturedOutput:
+    """What :func:`_c_stdout_captured` yields: the file fd 1 goes to (``sink``) and Python's
+    scanned standard output (``python``), read by :func:`_complained`."""
+
+    def __init__(self, sink, python):
+        self.sink, self.python = sink, python
+
 
 @contextlib.contextmanager
 def _c_stdout_captured():
-    """Inside the block, what C code writes to the standard output (fd 1) goes to a temporary file
-    (yielded): the linear algebra under IPOPT prints its complaints there, which the iteration
-    callback reads (:data:`LINEAR_ALGEBRA_COMPLAINTS`) and the terminal never shows. The rest of
-    that text (IPOPT's log, if asked for) is written to the standard output after the block.
-    Python's ``print`` to a standard output on fd 1 still reaches it as it happens."""
+    """Inside the block, what C code writes to the standard output (fd 1) goes to a temporary file,
+    and Python's standard output (where CasADi sends IPOPT's own text) through a filter; both are
+    yielded (:class:`_CapturedOutput`): the linear algebra under IPOPT prints its complaints there
+    and IPOPT its memory failures, which the iteration callback reads (:func:`classify_c_output`)
+    and the terminal never shows. The rest of the C text is written to the standard output after
+    the block; Python's ``print`` (and IPOPT's log, if asked for) still reaches it as it happens."""
     import tempfile
 
     try:
@@ -227,30 +330,34 @@ def _c_stdout_captured():
     saved = os.dup(1)
     with tempfile.TemporaryFile() as sink, open(saved, "w", closefd=False) as real_stdout:
         os.dup2(sink.fileno(), 1)
+        python = _ScannedStdout(real_stdout if python_on_fd1 else sys.stdout)
         try:
-            with contextlib.redirect_stdout(real_stdout) if python_on_fd1 else contextlib.nullcontext():
-                yield sink
-                real_stdout.flush()
+            with contextlib.redirect_stdout(python):
+                yield _CapturedOutput(sink, python)
+                python.flush()
         finally:
             _flush_c_stdio()
             os.dup2(saved, 1)
             sink.seek(0)
-            kept = [line for line in sink.read().splitlines(keepends=True)
-                    if not any(c in line for c in LINEAR_ALGEBRA_COMPLAINTS)]
+            kept = [line for line in sink.read().splitlines(keepends=True) if _shown(line)]
             if kept:
                 os.write(saved, b"".join(kept))
             os.close(saved)
 
 
-def _complained(sink, position):
-    """(whether the C output written to ``sink`` after ``position`` holds a linear-algebra
-    complaint, the new position)."""
+def _complained(captured, position):
+    """(:func:`classify_c_output` of the C output written to ``captured.sink`` after ``position``
+    and of the Python-side lines kept back since the last call, the new position)."""
     _flush_c_stdio()
-    size = os.fstat(sink.fileno()).st_size
-    if size <= position:
-        return False, position
-    text = os.pread(sink.fileno(), size - position, position)
-    return any(c in text for c in LINEAR_ALGEBRA_COMPLAINTS), size
+    complaints, captured.python.complaints = captured.python.complaints, []
+    size = os.fstat(captured.sink.fileno()).st_size
+    if size > position:
+        complaints.append(classify_c_output(os.pread(captured.sink.fileno(), size - position, position)))
+    else:
+        size = position
+    if LINEAR_SOLVER_FAILED in complaints:
+        return LINEAR_SOLVER_FAILED, size
+    return (LINEAR_SOLVER_OUT_OF_MEMORY if LINEAR_SOLVER_OUT_OF_MEMORY in complaints else None), size
 
 
 def _flush_c_stdio():
@@ -318,7 +425,7 @@ class _ProgressCallback(ca.Callback):
         # The file C's standard output goes to during the run (_c_stdout_captured), how much of it
         # has been read, and whether it showed a linear-algebra complaint.
         self.c_output, self.c_output_read = None, 0
-        self.linear_solver_failed = False
+        self.linear_solver_failed = self.out_of_memory = False
 
     def get_n_in(self):
         return ca.nlpsol_n_out()
@@ -366,8 +473,12 @@ class _ProgressCallback(ca.Callback):
         if interrupts.stop_requested():     # a signal, or the run's deadline (see interrupts)
             return [1]
         if self.c_output is not None:
-            complained, self.c_output_read = _complained(self.c_output, self.c_output_read)
-            if complained:
+            complaint, self.c_output_read = _complained(self.c_output, self.c_output_read)
+            if complaint == LINEAR_SOLVER_OUT_OF_MEMORY:
+                # IPOPT may yet recover (a later factorisation that fits): the run goes on, and its
+                # status says out of memory only if it fails.
+                self.out_of_memory = True
+            elif complaint is not None:
                 self.linear_solver_failed = True
                 return [1]
         return [0]
@@ -714,6 +825,10 @@ class _AngleProblem:
         key = (inequalities, tuple(sorted(options.items())))
         if key not in self._solvers:
             opts = {"print_time": False, "show_eval_warnings": False, "ipopt": dict(options)}
+            # IPOPT prints its errors (MUMPS out of memory among them, OUT_OF_MEMORY_COMPLAINTS) from
+            # print_level 1 only, and nothing else there: the captured output is scanned for them.
+            if opts["ipopt"].get("print_level", 5) < 1:
+                opts["ipopt"]["print_level"] = 1
             if self._numeric is not None:
                 f, g, derivatives, _ = self._numpy_problem()
                 # f, g and the multipliers come from IPOPT's last iterate: CasADi would otherwise
@@ -804,8 +919,11 @@ class _AngleProblem:
             with interrupts.defer_signals(), _c_stdout_captured() as c_output:
                 callback.c_output = c_output
                 out = solver(**args)
-                complained, _ = _complained(c_output, callback.c_output_read)
-                callback.linear_solver_failed |= complained
+                complaint, _ = _complained(c_output, callback.c_output_read)
+                if complaint == LINEAR_SOLVER_OUT_OF_MEMORY:
+                    callback.out_of_memory = True
+                elif complaint is not None:
+                    callback.linear_solver_failed = True
         finally:
             callback.c_output = None
             if self._numeric is not None:
@@ -820,6 +938,9 @@ class _AngleProblem:
             status = "Diverged"
         elif status == "User_Requested_Stop" and interrupts.deadline_passed():
             status = "Maximum_WallTime_Exceeded"
+        if callback.out_of_memory and status_kind(status) == "failed":
+            # MUMPS could not get the memory to factorise, and IPOPT did not recover.
+            status = LINEAR_SOLVER_OUT_OF_MEMORY
         return IpoptRun(x0=np.array(x0, dtype=float).ravel(), x=np.asarray(out["x"]).ravel(),
                         lam_g=np.asarray(out["lam_g"]).ravel(), lam_x=np.asarray(out["lam_x"]).ravel(),
                         objective=float(out["f"]), status=status, iterations=int(stats.get("iter_count", 0)),

@@ -218,3 +218,44 @@ def test_a_run_that_stays_infeasible_is_stopped_as_diverged():
     assert len(seen) == 3 and min(seen) > 1e-300
     run = nlp.solve(x, options=SETTINGS.ipopt_options)
     assert run.success and solve.max_constraint_violation(c, *nlp.unpack(run.x)) < 1e-8
+
+
+def test_captured_output_of_mumps_out_of_memory_is_classified_as_such():
+    # IPOPT's own lines when MUMPS cannot allocate its workspace (INFO(1) = -13, the 692k-vertex
+    # armadillo with a 34 GB reservation) or still lacks memory after its retries (-8/-9); the run
+    # then ended as Restoration_Failed, which said nothing of memory.
+    from sphere_nlp.nlp import (LINEAR_SOLVER_FAILED, LINEAR_SOLVER_OUT_OF_MEMORY, _shown, classify_c_output,
+                                failure_advice)
+
+    minus13 = (b"   0  6.8522186e+02 1.80e-01 1.28e+00  -6.0 0.00e+00    -  0.00e+00 0.00e+00   0\n"
+               b"MUMPS returned INFO(1) =-13 - out of memory when trying to allocate 4225 MB.\n"
+               b'In some cases it helps to decrease the value of the option "mumps_mem_percent".\n'
+               b"WARNING: Problem in step computation; switching to emergency mode.\n")
+    retries = (b"MUMPS returned INFO(1) = -9 and requires more memory, reallocating.  Attempt 20\n"
+               b"MUMPS was not able to obtain enough memory.\n")
+    assert classify_c_output(minus13) == LINEAR_SOLVER_OUT_OF_MEMORY
+    assert classify_c_output(minus13.decode()) == LINEAR_SOLVER_OUT_OF_MEMORY
+    assert classify_c_output(retries) == LINEAR_SOLVER_OUT_OF_MEMORY
+    assert classify_c_output(b"Error=-13 returned from MUMPS in Factorization.\n") == LINEAR_SOLVER_OUT_OF_MEMORY
+    # A retry that got its memory is not a failure, nor is IPOPT's ordinary log.
+    assert classify_c_output(retries.splitlines(keepends=True)[0]) is None
+    assert classify_c_output(b"iter    objective    inf_pr   inf_du lg(mu)\n") is None
+    assert classify_c_output(b"") is None
+    # The BLAS refusing its arguments stays a linear-solver failure, and counts first.
+    illegal = b" ** On entry to DTRSV parameter number  6 had an illegal value\n"
+    assert classify_c_output(illegal) == LINEAR_SOLVER_FAILED
+    assert classify_c_output(minus13 + illegal) == LINEAR_SOLVER_FAILED
+    # The memory lines become the status, not terminal text; the rest of the log is shown.
+    assert [line for line in minus13.splitlines(keepends=True) if _shown(line)] == minus13.splitlines(keepends=True)[::3]
+    assert "ran out of memory" in failure_advice(LINEAR_SOLVER_OUT_OF_MEMORY)
+    assert failure_advice("Restoration_Failed") is None
+
+
+def test_a_run_whose_mumps_workspace_is_refused_ends_out_of_memory():
+    # MUMPS asked to reserve its estimate plus 2e9 percent (~100 GB on this small problem): Linux
+    # refuses the allocation (INFO(1) = -13) at every factorisation, and IPOPT cannot recover.
+    c, nlp, x = small_log_chord_problem()
+    run = nlp.solve(x, options=dict(SETTINGS.ipopt_options, mumps_mem_percent=2_000_000_000))
+    if run.status in ("Solve_Succeeded", "Solved_To_Acceptable_Level"):
+        pytest.skip("this machine granted MUMPS a ~100 GB workspace")
+    assert run.status == "Linear_Solver_Out_Of_Memory" and not run.success
