@@ -339,3 +339,32 @@ def test_nested_dissection_ordering_reaches_the_same_positions(monkeypatch):
         positions[threshold], info = unfold(connectivity, angles)
         assert info["correction_factorizations"] >= 1 and info["corrected_max_angle_error"] < 1e-9
     assert np.abs(positions[0] - positions[10 ** 9]).max() < 1e-12
+
+
+def test_corrections_share_one_nested_dissection_order_restricted_to_their_part(monkeypatch):
+    # A walk's repair corrects part of the mesh and the final correction all of it: both order their
+    # unknowns from the whole mesh's nested dissection (one METIS call), restricted to their part,
+    # and reach the same positions as when the part is ordered afresh.
+    from sphere_nlp import unfold as U
+    from sphere_nlp.certify import spherical_angles
+    from sphere_nlp.shapes import icosphere
+
+    monkeypatch.setattr(U, "NESTED_DISSECTION_VERTICES", 100)
+    V, F = icosphere(3)
+    order = U.shared_vertex_order(F, len(V))
+    assert sorted(order.tolist()) == list(range(len(V)))
+    part = F[: 2 * len(F) // 3]
+    used = np.unique(part)
+    local = U._restricted_order(order, used)
+    assert sorted(local.tolist()) == list(range(len(used)))
+    assert np.array_equal(used[local], order[np.isin(order, used)])      # the whole order, kept
+    rng = np.random.default_rng(1)
+    nudged = V + 1e-4 * rng.normal(size=V.shape)
+    A = spherical_angles(V, part)
+    fresh, fresh_stats = U.correct(part, A, nudged)
+    shared, stats = U.correct(part, A, nudged, vertex_order=order)
+    assert stats["max_angle_error"] < 1e-12 and fresh_stats["max_angle_error"] < 1e-12
+    # The same shape; the rotations (the null space, held by a 1e-12 damping) may differ by rounding.
+    u, _, vt = np.linalg.svd(shared[used].T @ fresh[used])
+    assert np.abs(shared[used] @ (u @ vt) - fresh[used]).max() < 1e-10
+    assert np.array_equal(shared[np.setdiff1d(np.arange(len(V)), used)], nudged[np.setdiff1d(np.arange(len(V)), used)])
