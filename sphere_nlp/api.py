@@ -19,7 +19,7 @@ from .repair import prepare_mesh
 from .metrics import distortion_fields, distortion_summary, shrinkage_summary, usability_summary
 from .mesh_io import (GLTF_FORMATS, check_mesh_path, read_mesh, write_image, write_json, write_material, write_mesh,
                       write_npz)
-from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, status_kind
+from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, failure_advice, status_kind
 from .settings import DEFAULT_SETTINGS, SolverSettings
 from .polish import authalic_route, default_budget
 from .solve import check_floors, ON_LIMIT, solve_angles
@@ -36,7 +36,9 @@ def solve_failure_message(status, iterations):
         # ((3)-(5)), or an equality (6)-(8) off by more than 1e-8.
         return ("the angle solve ended outside the constraints: a zero or negative angle or excess, or "
                 "an equality residual above 1e-8 (IPOPT status %s after %d iterations)" % (status, iterations))
-    return "the angle solve failed (IPOPT status %s after %d iterations)" % (status, iterations)
+    advice = failure_advice(status)
+    return "the angle solve failed (IPOPT status %s after %d iterations)%s" % (
+        status, iterations, ": " + advice if advice else "")
 
 
 def peak_rss_mb():
