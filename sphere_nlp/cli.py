@@ -203,10 +203,12 @@ class Progress:
             self.long_stage_s = None
         if self.quiet:
             return
-        if stage.startswith("start"):
-            # The start's repair of a conformal map (untangle): its steps, no objective yet.
+        if stage.startswith("start (untangle)"):
+            # The start's repair of a conformal map: its steps, no objective yet.
             self._update("%s: step %d, %d flipped triangles in this round, %.1f s"
                          % (stage, iteration, objective, self.elapsed()))
+        elif stage.startswith("start"):
+            self._update("%s, %.1f s" % (stage, self.elapsed()))
         elif stage.startswith("authalic"):
             # The area modes' first-order stage (SEM's solves, then the descent's steps): its
             # energy, no constraints (every iterate is a certified map).

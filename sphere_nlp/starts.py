@@ -21,6 +21,7 @@ mesh, which satisfy every constraint; the paper's formulations from a linear lea
 Plain numpy in and out.
 """
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -147,12 +148,23 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", a
     faces = connectivity.faces
     weights = None if vertices is None else vertex_areas(vertices, faces, connectivity.n_vertices)
     found = None
+    began = time.perf_counter()
+
+    def announce(step):
+        # Each part of the start takes tens of seconds at 700k vertices: say which one runs.
+        if progress is not None:
+            progress("start (%s)" % step, 0, 0, 0.0, time.perf_counter() - began)
+
     # Past the run's deadline (interrupts.deadline) only the embedding, one linear solve valid by
     # construction: the solve then stops at once and reports the limit.
     if kind in ("auto", "conformal") and vertices is not None and not interrupts.deadline_passed():
+        announce("conformal map")
         found = conformal_start(connectivity, vertices, weights, angles, progress)
+    if found is None:
+        announce("convex embedding")
     positions, kind = found or embedding_start(connectivity, vertices, weights)
     if gauge == "excess" and not interrupts.deadline_passed():
+        announce("Mobius gauge")
         from .embedding import excess_gauge
         moved = excess_gauge(positions, faces)
         if moved is not positions and certify(moved, faces).valid:

@@ -141,3 +141,15 @@ def test_equal_areas_walks_from_its_targets_metric_to_the_same_or_a_lower_optimu
         assert from_metric.objective <= from_surface.objective * (1 + 1e-8)
         if fewer:
             assert from_metric.iterations < 0.5 * from_surface.iterations
+
+
+def test_the_start_names_each_of_its_parts_to_the_progress_function():
+    # At 700k vertices the conformal map and the gauge take tens of seconds each: a run's progress
+    # says which one runs, in order, with the seconds since the start began.
+    V, F = ellipsoid(2)
+    c = build_connectivity(F, len(V))
+    calls = []
+    positions, kind = starts.starting_positions(c, V, gauge="excess", progress=lambda *args: calls.append(args))
+    assert certify(positions, F).valid and kind == "conformal"
+    assert [call[0] for call in calls] == ["start (conformal map)", "start (Mobius gauge)"]
+    assert all(call[4] >= 0 for call in calls)
