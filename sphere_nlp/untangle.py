@@ -28,7 +28,8 @@ vertex exactly where it was:
 5. **Check and grow.** A region's new positions are kept only if all its triangles are positive on
    the sphere. Otherwise (or if its boundary loop does not enclose it counter-clockwise, which happens
    when the valid triangles around it overlap each other) the next round retries with a one-ring
-   larger region.
+   larger region (the Winslow untangler gives up on a region once three updates of eps in a row
+   leave as many triangles inverted: a region too tight for its triangles stays so).
 
 Only free vertices move and they touch only the region's triangles, so triangles outside the regions
 are unchanged and stay valid; the result is certified as a whole at the end.
@@ -285,7 +286,7 @@ def _winslow_energy(plane, faces, inverse, weights, eps, shape_weight):
 
 
 def _winslow_untangle(plane, free, faces, inverse, weights, scale, max_updates=12, max_iter=200,
-                      polish_iter=200, tick=None):
+                      polish_iter=200, tick=None, max_stalled_updates=3):
     """Move the ``free`` rows of ``plane`` to minimise the Winslow energy with a decreasing eps.
 
     ``scale`` (len(free),) is each free vertex's typical edge length: the optimiser works in those
@@ -317,13 +318,25 @@ def _winslow_untangle(plane, free, faces, inverse, weights, scale, max_updates=1
                             options=dict(maxiter=iterations),
                             callback=None if tick is None else (lambda _: tick())).x
 
+    def inverted(y):
+        plane[free] = y.reshape(-1, 2) * scale[:, None]
+        return int(np.sum(_winslow_energy(plane, faces, inverse, weights, 1.0, shape_weight)[2] <= 0))
+
     y = (plane[free] / scale[:, None]).ravel()
+    fewest, stalled = inverted(y), 0
     for _ in range(max_updates):
         lowest = min_det(y)
         if lowest > 0:
             break
         y = descend(y, np.sqrt(1e-12 + 0.04 * lowest ** 2), max_iter)
         if not np.isfinite(y).all():
+            return None
+        # A region too tight for its triangles stops losing inverted ones (a thin tail's tip:
+        # 12 updates, 28 s, then a failure); the caller grows it instead.
+        now = inverted(y)
+        stalled = 0 if now < fewest else stalled + 1
+        fewest = min(fewest, now)
+        if stalled >= max_stalled_updates:
             return None
     else:
         if not min_det(y) > 0:

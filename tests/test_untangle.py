@@ -196,3 +196,28 @@ def test_winslow_gradient_matches_finite_differences():
         down[index] -= step
         numeric[index] = (_winslow_energy(up, *args)[0] - _winslow_energy(down, *args)[0]) / (2 * step)
     np.testing.assert_allclose(grad, numeric, rtol=1e-5, atol=1e-5 * np.abs(numeric).max())
+
+
+def test_winslow_gives_up_early_where_no_layout_exists():
+    # A boundary loop turned clockwise (the horseshoe mirrored, its interior not) admits no layout
+    # with every triangle positive: the untangler must say so once its updates stop removing
+    # inverted triangles, not after all of them (a thin tail's tip cost 28 s a round that way).
+    from sphere_nlp.untangle import _Reference, _winslow_untangle
+
+    grid, faces = horseshoe_grid()
+    edges = np.sort(np.r_[faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1)
+    unique, count = np.unique(edges, axis=0, return_counts=True)
+    boundary = np.unique(unique[count == 1].ravel())
+    free = np.setdiff1d(np.arange(len(grid)), boundary)
+    start = grid.copy()
+    start[boundary, 0] = 6 - start[boundary, 0]
+    reference = _Reference(np.c_[grid, np.zeros(len(grid))], faces)
+    steps = {}
+    for stalled in (3, 13):
+        ticks = []
+        plane = _winslow_untangle(start, free, faces, reference.inverse, np.ones(len(faces)), np.ones(len(free)),
+                                  tick=lambda: ticks.append(1), max_stalled_updates=stalled)
+        assert plane is None
+        steps[stalled] = len(ticks)
+    assert steps[3] < steps[13]
+
