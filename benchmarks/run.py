@@ -257,6 +257,8 @@ def status_text(row):
             budget = "budget %d steps, %d polish its" % (budget["descent_steps"], budget["polish_iterations"])
         else:                                   # a wall-clock budget, as the area modes had before
             budget = "%.3g-s budget" % budget if budget else "no budget"
+        if route["answer"] == "none":
+            return route["reason"]
         if route["answer"] == "polished":
             end = "optimum" if polish.get("converged") else "budget's end, projected"
             return "authalic + polish (%s, polished to IPOPT's %s)" % (budget, end)

@@ -413,7 +413,7 @@ def split_timings(timings, stages, area_route=None, unfold_info=None, start_s=0.
     ipopt = min(sum(float(s.get("time_s", 0.0)) for s in stages), solve)
     authalic = 0.0
     if area_route is not None:
-        authalic = min(float(area_route.get("authalic", {}).get("seconds", 0.0)), solve - ipopt)
+        authalic = min(float((area_route.get("authalic") or {}).get("seconds", 0.0)), solve - ipopt)
         timings["solve.authalic"] = authalic
     start = min(float(start_s), solve - ipopt - authalic)
     timings["solve.start"] = start
@@ -764,9 +764,11 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     lap("unfold", "certify")
     certificate = certify(positions, faces)
     recovery = None
-    if formulation == "log-chord" and solution.success and not certificate.valid:
+    if formulation == "log-chord" and solution.success and not certificate.valid and area_route is None:
         # Solved angles that double precision cannot place (triangles too small to unfold): solve
-        # again with an area floor 1000 times higher (at least 1e-10 of the mean), once.
+        # again with an area floor 1000 times higher (at least 1e-10 of the mean), once. Not after
+        # the area modes' route, whose map is uncertified only when no valid start was found (the
+        # NLP alone from that start crawled for ten minutes on a thin 50k body).
         used = (settings or DEFAULT_SETTINGS).area_floor if area_floor is None else float(area_floor)
         tighter = max(1e3 * used, 1e-10)
         retry = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,
@@ -801,7 +803,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         corner_weighting=targets.corner_weighting, floor_corners=solution.floor_corners,
         floor_triangles=solution.floor_triangles, recovery=recovery, area_route=area_route)
     if check and not solution.success:
-        raise errors.SolveError(solve_failure_message(solution.status, solution.iterations), result)
+        raise errors.SolveError(area_route["reason"] if area_route is not None and area_route["answer"] == "none"
+                                else solve_failure_message(solution.status, solution.iterations), result)
     if check and not certificate.valid:
         raise errors.CertificateError("the sphere failed its certificate: " + certificate.reason, result)
     return result

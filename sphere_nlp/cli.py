@@ -358,7 +358,10 @@ def failure_line(result, report=None):
         count = "IPOPT status %s after %s" % (result.status, iterations(result.iterations))
     if result.status == "Maximum_WallTime_Exceeded" and result.iterations == 0:
         count += "; the time limit was reached before IPOPT's first iteration"
-    if not result.solved:
+    route = getattr(result, "area_route", None) or {}
+    if route.get("answer") == "none":
+        why = route["reason"]
+    elif not result.solved:
         if status_kind(result.status) == "solved":
             # IPOPT converged, but to angles that break a constraint of (3)-(8).
             why = ("the angle solve ended outside the constraints: a zero or negative angle or excess, or "

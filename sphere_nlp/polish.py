@@ -117,6 +117,9 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
         on_stage("authalic")
     start, start_kind = starting_positions(connectivity, vertices, progress=progress)
     start_s = time.perf_counter() - began
+    start_certificate = certify(start, faces)
+    if not start_certificate.valid:
+        return _without_valid_start(connectivity, targets, start, start_kind, start_certificate, start_s)
     left = interrupts.seconds_left()
     stage_time = None if math.isinf(left) else settings.authalic_share * left
     stage = authalic_map(vertices, faces, start, targets.excess, max_time=stage_time,
@@ -181,6 +184,26 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
         "seconds": round(time.perf_counter() - began, 3)})
     solution.start = "authalic"
     return AreaRoute(solution=solution, positions=positions, unfold_info=unfold_info, record=record)
+
+
+def _without_valid_start(connectivity, targets, start, start_kind, certificate, start_s):
+    """The route's answer when no start is valid: the conformal map's flipped triangles could not
+    be untangled and the convex embedding collapsed too (thin parts below double precision), so
+    there is nothing to descend from or polish; a failed solution that says so."""
+    with np.errstate(all="ignore"):
+        angles, excess = angles_and_excess(start, connectivity.faces)
+        objective = objective_value(targets, angles, excess)
+        violation = max_constraint_violation(connectivity, angles, excess)
+    reason = ("no valid starting map: the conformal map could not be untangled and the convex embedding has "
+              "%s (parts too thin for double precision)" % certificate.reason)
+    solution = AngleSolution(
+        angles=angles, excess=excess, success=False, status="No_Valid_Start", iterations=0,
+        objective=objective, max_constraint_violation=violation, stages=[], initial_angles=angles,
+        initial_excess=excess, start="authalic", converged=False)
+    record = {"start": start_kind, "start_seconds": round(start_s, 3), "authalic": None, "answer": "none",
+              "reason": reason, "budget": None, "polish": None, "objective": None, "mean_abs_log_area": None,
+              "seconds": round(start_s, 3)}
+    return AreaRoute(solution=solution, positions=start, unfold_info={}, record=record)
 
 
 def _rejection(polished, targets, authalic_error, authalic_objective):

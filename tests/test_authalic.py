@@ -1,5 +1,6 @@
 """The area modes' authalic stage (sphere_nlp.authalic) and its polish by the NLP (sphere_nlp.polish)."""
 
+import json
 import math
 import re
 import subprocess
@@ -13,6 +14,7 @@ from meshgen import COLLAPSING_LIMBS, ellipsoid, limbed_body, random_genus0_mesh
 from sphere_nlp import authalic, parameterize, polish
 from sphere_nlp.certify import certify
 from sphere_nlp.connectivity import build_connectivity
+from sphere_nlp.errors import SolveError
 from sphere_nlp.geometry import signed_solid_angles
 from sphere_nlp.settings import SolverSettings
 from sphere_nlp.starts import angles_and_excess, starting_positions
@@ -217,3 +219,29 @@ def test_both_steps_of_the_authalic_stage_report_progress():
     stages = [stage for stage, _, _ in seen]
     assert "authalic SEM" in stages and stages.count("authalic descent") == 5
     assert all(np.isfinite(energy) for _, _, energy in seen)
+
+
+def test_route_without_a_valid_start_fails_at_once_without_the_nlp(monkeypatch):
+    # Where neither the conformal map's untangling nor the convex embedding gives a valid start (a
+    # thin 50k body's tail below double precision), the route's answer cannot be certified; the
+    # NLP alone from that start is no remedy (ten minutes, uncertified): the run fails, says why,
+    # and solves nothing more.
+    real = polish.starting_positions
+
+    def folded(connectivity, vertices, **keywords):
+        positions, _ = real(connectivity, vertices, **keywords)
+        positions = positions.copy()
+        positions[0] = -positions[0]                  # one vertex thrown across the sphere
+        return positions, "embedding-uncentred"
+
+    monkeypatch.setattr(polish, "starting_positions", folded)
+    with pytest.raises(SolveError, match="^no valid starting map"):
+        parameterize(str(MODELS / "cylinder.off"), "original-areas")
+    result = parameterize(str(MODELS / "cylinder.off"), "original-areas", check=False)
+    assert not result.success and not result.certificate.valid
+    assert result.recovery is None and result.iterations == 0 and result.status == "No_Valid_Start"
+    assert result.area_route["answer"] == "none"
+    assert result.area_route["reason"].startswith("no valid starting map")
+    from sphere_nlp.cli import failure_line
+    assert failure_line(result).startswith("no valid starting map") and "nothing written" in failure_line(result)
+    json.dumps(result.report(), allow_nan=False)
