@@ -767,8 +767,8 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
     if formulation == "log-chord" and solution.success and not certificate.valid and area_route is None:
         # Solved angles that double precision cannot place (triangles too small to unfold): solve
         # again with an area floor 1000 times higher (at least 1e-10 of the mean), once. Not after
-        # the area modes' route, whose map is uncertified only when no valid start was found (the
-        # NLP alone from that start crawled for ten minutes on a thin 50k body).
+        # the area modes' route, whose map is uncertified only when no valid start was found, from
+        # which the NLP alone cannot do better (docs/design.md, the area modes).
         used = (settings or DEFAULT_SETTINGS).area_floor if area_floor is None else float(area_floor)
         tighter = max(1e3 * used, 1e-10)
         retry = solve_angles(connectivity, targets, formulation=formulation, ipopt_options=ipopt_options,

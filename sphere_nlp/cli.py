@@ -358,7 +358,7 @@ def failure_line(result, report=None):
         count = "IPOPT status %s after %s" % (result.status, iterations(result.iterations))
     if result.status == "Maximum_WallTime_Exceeded" and result.iterations == 0:
         count += "; the time limit was reached before IPOPT's first iteration"
-    route = getattr(result, "area_route", None) or {}
+    route = result.area_route or {}
     if route.get("answer") == "none":
         why = route["reason"]
     elif not result.solved:

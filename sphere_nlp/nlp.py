@@ -472,16 +472,21 @@ class _ProgressCallback(ca.Callback):
             return [1]                      # non-zero asks IPOPT to stop
         if interrupts.stop_requested():     # a signal, or the run's deadline (see interrupts)
             return [1]
-        if self.c_output is not None:
-            complaint, self.c_output_read = _complained(self.c_output, self.c_output_read)
-            if complaint == LINEAR_SOLVER_OUT_OF_MEMORY:
-                # IPOPT may yet recover (a later factorisation that fits): the run goes on, and its
-                # status says out of memory only if it fails.
-                self.out_of_memory = True
-            elif complaint is not None:
-                self.linear_solver_failed = True
-                return [1]
+        if self.c_output is not None and self.read_complaints():
+            return [1]
         return [0]
+
+    def read_complaints(self):
+        """Read the captured output written since the last read (:func:`_complained`) and record
+        what it says; True if the linear algebra failed, so that the run must stop."""
+        complaint, self.c_output_read = _complained(self.c_output, self.c_output_read)
+        if complaint == LINEAR_SOLVER_OUT_OF_MEMORY:
+            # IPOPT may yet recover (a later factorisation that fits): the run goes on, and its
+            # status says out of memory only if it fails.
+            self.out_of_memory = True
+        elif complaint is not None:
+            self.linear_solver_failed = True
+        return self.linear_solver_failed
 
 
 # numpy expressions for the operations CasADi's SX virtual machine can hold (see _vectorize)
@@ -919,11 +924,7 @@ class _AngleProblem:
             with interrupts.defer_signals(), _c_stdout_captured() as c_output:
                 callback.c_output = c_output
                 out = solver(**args)
-                complaint, _ = _complained(c_output, callback.c_output_read)
-                if complaint == LINEAR_SOLVER_OUT_OF_MEMORY:
-                    callback.out_of_memory = True
-                elif complaint is not None:
-                    callback.linear_solver_failed = True
+                callback.read_complaints()
         finally:
             callback.c_output = None
             if self._numeric is not None:

@@ -327,9 +327,7 @@ def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True
                 done = np.flatnonzero(count == 3)
                 done_error = _max_angle_error(positions, F[done], A[done])
             if not done_error <= WALK_FORCED_REPAIR_ERROR * best_w.max():
-                done = np.flatnonzero(count == 3)
-                positions = correct(F[done], A[done], positions, max_iterations=20, tolerance=1e-8,
-                                    slow_target=np.inf, vertex_order=vertex_order)[0]
+                positions = _repair_completed(F, A, count, positions, vertex_order)
                 placed_at_repair = n_placed
                 repairs += 1
                 done_error = None
@@ -372,14 +370,19 @@ def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True
             tolerable = WALK_URGENT_ERROR if (growth < WALK_REPAIR_GROWTH or n_placed > 0.8 * n) \
                 else WALK_REPAIR_ERROR
             if not error <= tolerable:
-                done = np.flatnonzero(count == 3)
-                # Only needs to be well inside Gauss-Newton's reach for the next stretch of walk.
-                positions = correct(F[done], A[done], positions, max_iterations=20, tolerance=1e-8,
-                                    slow_target=np.inf, vertex_order=vertex_order)[0]
+                positions = _repair_completed(F, A, count, positions, vertex_order)
                 placed_at_repair = n_placed
                 repairs += 1
                 done_error = None
     return positions, levels, repairs
+
+
+def _repair_completed(F, A, count, positions, vertex_order):
+    """A walk's repair: the triangles completed so far (``count`` 3) corrected by Gauss-Newton,
+    only well inside its reach for the next stretch of walk (the final correction does the rest)."""
+    done = np.flatnonzero(count == 3)
+    return correct(F[done], A[done], positions, max_iterations=20, tolerance=1e-8, slow_target=np.inf,
+                   vertex_order=vertex_order)[0]
 
 
 def tangent_bases(positions):

@@ -292,10 +292,10 @@ def _winslow_untangle(plane, free, faces, inverse, weights, scale, max_updates=1
     ``scale`` (len(free),) is each free vertex's typical edge length: the optimiser works in those
     units, because conformal maps shrink some parts by orders of magnitude. ``tick()``, if given,
     is called after every step of the optimiser (the start's progress lines). ``max_iter`` steps
-    per value of eps: on a collapsed limb's tip L-BFGS's later steps cost ten times the first
-    ones (line searches on a stiffening barrier), and a smaller eps sooner does better (the
-    eight-legged body's start: 20.8 s with 1,000, 1.7 s with 200, the same regions and rounds; the
-    shared meshes' untangled starts are identical either way).
+    per value of eps: on a collapsed limb's tip L-BFGS's later steps cost far more than the first
+    ones (line searches on a stiffening barrier), and a smaller eps sooner does better
+    (docs/tuning.md, "The conformal start"). ``max_stalled_updates`` updates of eps in a row that
+    leave as many triangles inverted end the attempt (None).
     Returns the new plane positions (all rows) once every determinant is positive, else None.
     """
     from scipy.optimize import minimize
@@ -308,9 +308,9 @@ def _winslow_untangle(plane, free, faces, inverse, weights, scale, max_updates=1
         value, grad, _ = _winslow_energy(plane, faces, inverse, weights, eps, shape_weight)
         return value, (grad[free] * scale[:, None]).ravel()
 
-    def min_det(y):
+    def determinants(y):
         plane[free] = y.reshape(-1, 2) * scale[:, None]
-        return _winslow_energy(plane, faces, inverse, weights, 1.0, shape_weight)[2].min()
+        return _winslow_energy(plane, faces, inverse, weights, 1.0, shape_weight)[2]
 
     def descend(y, eps, iterations):
         with np.errstate(all="ignore"):
@@ -318,33 +318,31 @@ def _winslow_untangle(plane, free, faces, inverse, weights, scale, max_updates=1
                             options=dict(maxiter=iterations),
                             callback=None if tick is None else (lambda _: tick())).x
 
-    def inverted(y):
-        plane[free] = y.reshape(-1, 2) * scale[:, None]
-        return int(np.sum(_winslow_energy(plane, faces, inverse, weights, 1.0, shape_weight)[2] <= 0))
-
     y = (plane[free] / scale[:, None]).ravel()
-    fewest, stalled = inverted(y), 0
+    det = determinants(y)
+    fewest, stalled = int(np.sum(det <= 0)), 0
     for _ in range(max_updates):
-        lowest = min_det(y)
+        lowest = det.min()
         if lowest > 0:
             break
         y = descend(y, np.sqrt(1e-12 + 0.04 * lowest ** 2), max_iter)
         if not np.isfinite(y).all():
             return None
-        # A region too tight for its triangles stops losing inverted ones (a thin tail's tip:
-        # 12 updates, 28 s, then a failure); the caller grows it instead.
-        now = inverted(y)
+        # A region too tight for its triangles stops losing inverted ones, and more updates of eps
+        # cannot change that: the caller grows the region instead.
+        det = determinants(y)
+        now = int(np.sum(det <= 0))
         stalled = 0 if now < fewest else stalled + 1
         fewest = min(fewest, now)
         if stalled >= max_stalled_updates:
             return None
     else:
-        if not min_det(y) > 0:
+        if not det.min() > 0:
             return None
     # Valid now; with eps ~ 0 the energy is a barrier at D = 0, so descending further only improves
     # the triangles' shapes (the untangling phase stops at the first valid, often sliver-filled, layout).
     polished = descend(y, 1e-6, polish_iter)
-    if np.isfinite(polished).all() and min_det(polished) > 0:
+    if np.isfinite(polished).all() and determinants(polished).min() > 0:
         y = polished
     plane[free] = y.reshape(-1, 2) * scale[:, None]
     return plane
@@ -461,8 +459,8 @@ def untangle(positions, faces, mesh_vertices=None, max_rounds=20, weights="mean-
         The 3D mesh, for mean-value weights. Without it the weights are uniform.
     max_rounds : int
         Round ``r`` re-embeds the ``(r - 1)``-ring around the triangles still flipped. A thin
-        tail's tip needs room: `tests/meshgen.py`'s THIN_LIMBED_BODIES["50k"] came out valid in
-        round 12 (its OFF copy in round 9); the shared meshes need one or two.
+        tail's tip needs many rings of room; the shared meshes need one or two rounds
+        (docs/tuning.md, "The conformal start").
     weights : {"mean-value", "uniform"}
         Tutte weights.
     winslow : bool
