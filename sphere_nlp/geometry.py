@@ -64,7 +64,8 @@ def signed_solid_angles(positions, faces):
     a, b, c = (positions[faces[:, k]] for k in range(3))
     # det[a, b, c] = a . ((b - a) x (c - a)): differences keep tiny triangles accurate.
     det = np.einsum("ij,ij->i", a, np.cross(b - a, c - a))
-    na, nb, nc = (np.linalg.norm(p, axis=1) for p in (a, b, c))
+    norms = np.linalg.norm(positions, axis=1)       # once a vertex, not three times a triangle
+    na, nb, nc = (norms[faces[:, k]] for k in range(3))
     denom = (na * nb * nc + np.einsum("ij,ij->i", a, b) * nc + np.einsum("ij,ij->i", b, c) * na
              + np.einsum("ij,ij->i", c, a) * nb)
     return 2 * np.arctan2(det, denom)

@@ -449,19 +449,33 @@ class _ProgressCallback(ca.Callback):
             return ca.Sparsity.dense(self._n_g)
         return ca.Sparsity(0, 0)
 
-    def eval(self, arg):
-        names = ca.nlpsol_out()
-        g = np.asarray(arg[names.index("g")]).ravel()
+    def has_eval_buffer(self):
+        return True
+
+    def eval_buffer(self, arg, res):
+        # Buffers, not DMs: CasADi's DM-to-numpy conversion goes through a Python list, seconds an
+        # iteration at 10^6 variables. The buffers are CasADi's, so whatever is kept is copied.
+        values = dict(zip(ca.nlpsol_out(), arg))
+
+        def vector(name):
+            return np.empty(0) if values[name] is None else np.frombuffer(values[name], dtype=float)
+        stop = self._on_iteration(vector)
+        if res[0] is not None:
+            np.frombuffer(res[0], dtype=float)[:] = stop
+        return 0
+
+    def _on_iteration(self, vector):
+        """Report, keep the best sound iterate, and say whether IPOPT must stop (1) or go on (0)."""
+        g = vector("g")
         violation = float(np.max(np.maximum(self._lbg - g, g - self._ubg), initial=0.0))
-        objective = float(arg[names.index("f")])
+        objective = float(vector("f")[0])
         if self._report is not None:
             self._report(self.iteration, objective, violation, time.perf_counter() - self.start)
         if self._on_iterate is not None:
-            self._on_iterate(self.iteration, *[np.asarray(arg[names.index(k)]).ravel() for k in ("x", "lam_g", "lam_x")],
-                             objective)
+            self._on_iterate(self.iteration, *[vector(k).copy() for k in ("x", "lam_g", "lam_x")], objective)
         if (self.abort_violation is not None and violation <= self.sound_violation
                 and (self.best is None or objective < self.best.objective)):
-            self.best = Iterate(*[np.array(arg[names.index(k)]).ravel() for k in ("x", "lam_g", "lam_x")],
+            self.best = Iterate(*[vector(k).copy() for k in ("x", "lam_g", "lam_x")],
                                 iteration=self.iteration, objective=objective, violation=violation)
         self.iteration += 1
         # not (violation <= ...) so that a NaN violation counts as above
@@ -469,12 +483,12 @@ class _ProgressCallback(ca.Callback):
         self.iterations_above = self.iterations_above + 1 if above else 0
         if self.abort_violation is not None and self.iterations_above >= self.abort_iterations:
             self.aborted = True
-            return [1]                      # non-zero asks IPOPT to stop
+            return 1                        # non-zero asks IPOPT to stop
         if interrupts.stop_requested():     # a signal, or the run's deadline (see interrupts)
-            return [1]
+            return 1
         if self.c_output is not None and self.read_complaints():
-            return [1]
-        return [0]
+            return 1
+        return 0
 
     def read_complaints(self):
         """Read the captured output written since the last read (:func:`_complained`) and record

@@ -106,6 +106,11 @@ class SolverSettings:
         Added to the angle modes' first margin run instead, when at least ``floor_crowd_share`` of
         the start's triangles lie below the area floor (thin limbs: their bounds bind one after
         another under a small barrier; docs/tuning.md, "angle_mode_margin_options").
+    multiplier_estimate_max_vertices : int
+        From this many vertices IPOPT starts the constraint multipliers at 0 instead of its
+        least-squares estimate (``constr_mult_init_max`` 0): the estimate costs one factorisation of
+        the KKT matrix (2-3 s at 173k vertices) and at these sizes comes out above IPOPT's cap of
+        1000 and is discarded (the Loop armadillo: the same iterates either way; docs/tuning.md).
     warm_start_options : mapping
         Added to a run warm-started from an earlier one's multipliers.
     excess_window : float
@@ -281,6 +286,7 @@ class SolverSettings:
     angle_mode_margin_options: MappingProxyType = _frozen(ANGLE_MODE_MARGIN_OPTIONS)
     floor_crowd_margin_options: MappingProxyType = _frozen(FLOOR_CROWD_MARGIN_OPTIONS)
     floor_crowd_share: float = 0.2
+    multiplier_estimate_max_vertices: int = 100_000
     warm_start_options: MappingProxyType = _frozen(WARM_START_OPTIONS)
     excess_window: float = 5.0
     angle_mode_excess_window: float = 20.0

@@ -512,6 +512,8 @@ class _Context:
             options["max_iter"] = int(max_iter)
         if max_time is not None:
             options["max_wall_time"] = float(max_time)
+        if connectivity.n_vertices >= settings.multiplier_estimate_max_vertices:
+            options["constr_mult_init_max"] = 0.0
         options.update(ipopt_options or {})
         stage_cap = None
         if formulation == "log-chord" and max_iter is None and "max_iter" not in (ipopt_options or {}):
