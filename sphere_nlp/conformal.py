@@ -58,6 +58,11 @@ def lumped_mass(vertices, faces):
     return sp.diags(scatter_to_vertices(faces, triangle_areas(vertices, faces) / 3, len(vertices)))
 
 
+# From this many free vertices the Dirichlet solves are ordered by METIS nested dissection: at 692k
+# vertices 6.7 s a solve against SuperLU's own 9.9 s; at 173k the same 1.3 s either way.
+NESTED_DISSECTION_UNKNOWNS = 300_000
+
+
 def _dirichlet_solve(K, values, fixed):
     """Solve K x = 0 on the free vertices with x = values on ``fixed``; values is (n, k), returns (n, k)."""
     n = K.shape[0]
@@ -66,7 +71,8 @@ def _dirichlet_solve(K, values, fixed):
     x = np.array(values, dtype=float)
     K = K.tocsr()
     rhs = -(K[free][:, ~free] @ x[~free])
-    x[free] = sparse_lu.solve(K[free][:, free], np.asarray(rhs, dtype=float))
+    ordering = "metis" if np.count_nonzero(free) >= NESTED_DISSECTION_UNKNOWNS else None
+    x[free] = sparse_lu.solve(K[free][:, free], np.asarray(rhs, dtype=float), ordering=ordering)
     return x
 
 

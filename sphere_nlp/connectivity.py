@@ -121,15 +121,15 @@ def build_connectivity(faces, n_vertices, vertex_names=None):
     if repeated.any():
         raise errors.FaceIndexError("%d face(s) repeat a vertex (e.g. face %d): degenerate triangles"
                                     % (repeated.sum(), np.flatnonzero(repeated)[0]))
-    unused = np.setdiff1d(np.arange(n_vertices), faces.ravel())
+    used = np.zeros(n_vertices, bool)
+    used[faces.ravel()] = True
+    unused = np.flatnonzero(~used)
     if len(unused):
         raise errors.FaceIndexError("%d vertex(es) are not used by any face (e.g. vertex %d)"
                                     % (len(unused), names[unused[0]]))
 
     half = _half_edges(faces).reshape(-1, 2)           # row 3*i+j: edge opposite corner (i, j)
-    key = np.sort(half, axis=1)
-    edges, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
+    edges, inverse, counts = _unique_edges(half, n_vertices)
     if (counts == 1).any():
         bad = edges[counts == 1]
         raise errors.OpenBoundaryError("mesh has %d boundary edge(s) (e.g. %s): it must be closed"
@@ -188,11 +188,24 @@ def build_connectivity(faces, n_vertices, vertex_names=None):
                         vertex_degree=np.bincount(faces.ravel(), minlength=n_vertices))
 
 
+def _unique_edges(half, n_vertices):
+    """The undirected edges (m, 2) of half-edges (k, 2) sorted by (low, high) vertex, the edge of each
+    half-edge (k,), and how many half-edges each edge has (m,).
+
+    Each edge is one int64 key low * n + high: sorting those is several times faster than numpy's
+    unique over rows (0.1 s against 0.9 s at 173k vertices), in the same order.
+    """
+    key = np.sort(half, axis=1)
+    keys, inverse, counts = np.unique(key[:, 0] * np.int64(n_vertices) + key[:, 1],
+                                      return_inverse=True, return_counts=True)
+    return np.stack(np.divmod(keys, np.int64(n_vertices)), axis=1), inverse.ravel(), counts
+
+
 def _edge_corner_pairs(faces):
     """Directed half-edges (3t, 2) and, for each undirected edge, its two flat corner indices (m, 2)."""
     half = _half_edges(faces).reshape(-1, 2)
-    _, inverse = np.unique(np.sort(half, axis=1), axis=0, return_inverse=True)
-    return half, np.argsort(inverse.ravel(), kind="stable").reshape(-1, 2)
+    _, inverse, _ = _unique_edges(half, int(half.max()) + 1)
+    return half, np.argsort(inverse, kind="stable").reshape(-1, 2)
 
 
 def orient_consistently(faces):
