@@ -1,5 +1,6 @@
 """The Python API: :func:`parameterize` runs the whole pipeline and returns one result object."""
 
+import copy
 import functools
 import math
 import numbers
@@ -293,14 +294,25 @@ class SphericalParameterization:
         fields. Measured against the input centred and scaled to unit size, so extreme coordinates
         (1e-150, 1e150) give the same numbers as moderate ones.
         """
-        return distortion_summary(_unit_size(self.input_vertices), self.vertices, self.faces)
+        return self._once("distortion", lambda: distortion_summary(_unit_size(self.input_vertices), self.vertices,
+                                                                   self.faces))
 
     def usability(self):
         """The independent check of :func:`sphere_nlp.metrics.usability_summary`: worst
         quasi-conformal ratio, corners below 0.1 x their target, smallest spherical triangle over
         the mean, mean angle distortion and mean |log area ratio| (input centred and scaled as in
         :meth:`distortion`)."""
-        return usability_summary(_unit_size(self.input_vertices), self.vertices, self.faces, self.target_angles)
+        return self._once("usability", lambda: usability_summary(_unit_size(self.input_vertices), self.vertices,
+                                                                 self.faces, self.target_angles,
+                                                                 summary=self.distortion()))
+
+    def _once(self, name, compute):
+        """A copy of ``compute()``, computed at the first call for this result: the summaries
+        take seconds at 10^5-10^6 vertices, and the run line, the report and the checks all ask."""
+        cache = self.__dict__.setdefault("_summaries", {})
+        if name not in cache:
+            cache[name] = compute()
+        return copy.deepcopy(cache[name])
 
     def shrinkage(self):
         """Whether the map shrank parts of the surface past use (an angle mode's limbs), and the

@@ -283,7 +283,7 @@ USABILITY_KEYS = ("valid", "flipped", "qc_max", "qc_max_target", "sliver_targets
 SLIVER_TARGET_ANGLE = np.radians(1.0)
 
 
-def usability_summary(mesh_vertices, sphere_vertices, faces, target_angles=None, corner_fraction=0.1):
+def usability_summary(mesh_vertices, sphere_vertices, faces, target_angles=None, corner_fraction=0.1, summary=None):
     """Whether a spherical map is usable for texturing and resampling, from positions alone.
 
     An independent check of the solver's output (it reads neither the solver's angles nor its
@@ -298,6 +298,8 @@ def usability_summary(mesh_vertices, sphere_vertices, faces, target_angles=None,
         The objective's target corner angles beta (default: the 3D corner angles).
     corner_fraction : float
         A spherical corner counts as collapsed below this fraction of its target.
+    summary : dict, optional
+        :func:`distortion_summary` of the same map, if the caller has it already.
 
     Returns
     -------
@@ -323,7 +325,8 @@ def usability_summary(mesh_vertices, sphere_vertices, faces, target_angles=None,
     sphere_vertices = np.asarray(sphere_vertices, dtype=float)
     if target_angles is None:
         target_angles = corner_angles(mesh_vertices, faces)
-    summary = distortion_summary(mesh_vertices, sphere_vertices, faces)
+    if summary is None:
+        summary = distortion_summary(mesh_vertices, sphere_vertices, faces)
     qc = quasi_conformal_ratio(mesh_vertices, sphere_vertices, faces)
     omega = signed_solid_angles(sphere_vertices, faces)
     target_angles = np.asarray(target_angles, float)
