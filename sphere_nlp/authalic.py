@@ -38,7 +38,7 @@ import scipy.sparse as sp
 from . import interrupts, sparse_lu
 from .certify import certify
 from .conformal import _assemble_edge_weights, _inverse_stereographic
-from .geometry import rotation_between, signed_solid_angles, triangle_areas
+from .geometry import cross, rotation_between, signed_solid_angles, triangle_areas
 from .untangle import untangle
 
 
@@ -71,7 +71,7 @@ def stretch_laplacian(positions, faces, target_share):
     corners = positions[faces]
     to_next = np.roll(corners, -1, axis=1) - corners
     to_prev = np.roll(corners, 1, axis=1) - corners
-    twice_total = np.linalg.norm(np.cross(to_next[:, 0], to_prev[:, 0]), axis=1).sum()
+    twice_total = np.linalg.norm(cross(to_next[:, 0], to_prev[:, 0]), axis=1).sum()
     dot = np.einsum("tjk,tjk->tj", to_next, to_prev)
     return _assemble_edge_weights(faces, 0.5 * dot / (twice_total * target_share)[:, None], len(positions))
 
@@ -196,14 +196,14 @@ class AuthalicEnergy:
         a, b, c = P[:, 0], P[:, 1], P[:, 2]
         # Omega = 2 atan2(N, D), N = det[a, b, c], D = 1 + a.b + b.c + c.a (Van Oosterom & Strackee),
         # so dOmega = 2 (D dN - N dD) / (N^2 + D^2), with dN/da = b x c and dD/da = b + c.
-        N = np.einsum("ij,ij->i", a, np.cross(b - a, c - a))
+        N = np.einsum("ij,ij->i", a, cross(b - a, c - a))
         D = 1 + np.einsum("ij,ij->i", a, b) + np.einsum("ij,ij->i", b, c) + np.einsum("ij,ij->i", c, a)
         omega = np.exp(r + self.log_target)
         scale = (_area_penalty(r)[1] / omega) * 2 / (N * N + D * D)
         sD, sN = (scale * D)[:, None], (scale * N)[:, None]
-        grad = np.stack([sD * np.cross(b, c) - sN * (b + c),
-                         sD * np.cross(c, a) - sN * (c + a),
-                         sD * np.cross(a, b) - sN * (a + b)], axis=1)
+        grad = np.stack([sD * cross(b, c) - sN * (b + c),
+                         sD * cross(c, a) - sN * (c + a),
+                         sD * cross(a, b) - sN * (a + b)], axis=1)
         G = np.empty_like(X)
         for k in range(3):
             G[:, k] = np.bincount(f.ravel(), grad[:, :, k].ravel(), self.n)
@@ -229,7 +229,7 @@ class _Preconditioner:
         # A triangle too small for its cotangents (or its weight) in double precision makes a
         # non-finite entry, which factorize refuses (NonFiniteSystem): the descent then ends there.
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            cot = np.einsum("tjk,tjk->tj", to_next, to_prev) / np.linalg.norm(np.cross(to_next, to_prev), axis=2)
+            cot = np.einsum("tjk,tjk->tj", to_next, to_prev) / np.linalg.norm(cross(to_next, to_prev), axis=2)
             weight = 0.5 * np.maximum(cot, 0.05) * (2 / np.exp(ratio + energy.log_target))[:, None]
         L = _assemble_edge_weights(faces, weight, n)
         self.factor = sparse_lu.factorize(L + 1e-3 * sp.diags(L.diagonal()))

@@ -9,7 +9,7 @@ import scipy.sparse as sp
 
 from . import sparse_lu
 
-from .geometry import scatter_to_vertices, triangle_areas, triangles_with_angles
+from .geometry import cross, scatter_to_vertices, triangle_areas, triangles_with_angles
 
 
 # --- shared finite-element pieces -------------------------------------------------------------------
@@ -40,7 +40,7 @@ def _cotan_laplacian_of_corners(faces, corners, n):
     to_prev = np.roll(corners, 1, axis=1) - corners
     # cot of the angle at corner k = dot / |cross|; it weighs the edge opposite that corner.
     cot = (np.einsum("tjk,tjk->tj", to_next, to_prev)
-           / np.linalg.norm(np.cross(to_next, to_prev), axis=2))
+           / np.linalg.norm(cross(to_next, to_prev), axis=2))
     return _assemble_edge_weights(faces, 0.5 * cot, n)
 
 
@@ -234,7 +234,7 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None):
     scale = 1 / np.linalg.norm(a)
     # p1 at 0, p2 at 1, p3 where the triangle's shape puts it (counter-clockwise, so the rest comes out
     # clockwise in the plane and counter-clockwise on the sphere after the orientation-reversing projection).
-    third = scale * np.array([a @ b / np.linalg.norm(a), np.linalg.norm(np.cross(a, b)) / np.linalg.norm(a)])
+    third = scale * np.array([a @ b / np.linalg.norm(a), np.linalg.norm(cross(a, b)) / np.linalg.norm(a)])
     boundary = np.zeros((n, 2))
     boundary[p2] = [1, 0]
     boundary[p3] = third

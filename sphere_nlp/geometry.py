@@ -8,6 +8,24 @@ baselines. Plain numpy; ``faces`` index rows of the positions, corner ``[i, j]``
 import numpy as np
 
 
+def cross(u, v):
+    """Cross product of 3-vectors along the last axis (broadcasting), as ``np.cross``.
+
+    The same arithmetic as ``np.cross`` (bit for bit) without its axis handling and temporaries:
+    5-8 times faster on 10^5-10^6 vectors, where the certificate, the start's gauge and the unfold
+    take thousands of them per step.
+
+    >>> cross(np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])).tolist()
+    [0.0, 0.0, 1.0]
+    """
+    u, v = np.asarray(u), np.asarray(v)
+    out = np.empty(np.broadcast_shapes(u.shape, v.shape), dtype=np.result_type(u, v))
+    out[..., 0] = u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1]
+    out[..., 1] = u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2]
+    out[..., 2] = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+    return out
+
+
 def corner_angles(vertices, faces):
     """Planar corner angles of each triangle, (t, 3), ``[i, j]`` at vertex ``faces[i, j]``.
 
@@ -26,9 +44,9 @@ def corner_angles(vertices, faces):
     P = np.asarray(vertices, dtype=float)[np.asarray(faces, dtype=np.int64)]   # (t, 3 corners, 3 coords)
     to_next = np.roll(P, -1, axis=1) - P
     to_prev = np.roll(P, 1, axis=1) - P
-    cross = np.linalg.norm(np.cross(to_next, to_prev), axis=2)
+    sine = np.linalg.norm(cross(to_next, to_prev), axis=2)
     dot = np.einsum("tjk,tjk->tj", to_next, to_prev)
-    return np.arctan2(cross, dot)
+    return np.arctan2(sine, dot)
 
 
 def triangle_areas(vertices, faces):
@@ -38,7 +56,7 @@ def triangle_areas(vertices, faces):
     array([0.866])
     """
     P = vertices[faces]
-    return 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
+    return 0.5 * np.linalg.norm(cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
 
 
 def scatter_to_vertices(faces, face_values, n_vertices):
@@ -63,7 +81,7 @@ def signed_solid_angles(positions, faces):
     """
     a, b, c = (positions[faces[:, k]] for k in range(3))
     # det[a, b, c] = a . ((b - a) x (c - a)): differences keep tiny triangles accurate.
-    det = np.einsum("ij,ij->i", a, np.cross(b - a, c - a))
+    det = np.einsum("ij,ij->i", a, cross(b - a, c - a))
     norms = np.linalg.norm(positions, axis=1)       # once a vertex, not three times a triangle
     na, nb, nc = (norms[faces[:, k]] for k in range(3))
     denom = (na * nb * nc + np.einsum("ij,ij->i", a, b) * nc + np.einsum("ij,ij->i", b, c) * na
@@ -84,7 +102,7 @@ def spherical_angles(positions, faces):
     db, dc = b - a, c - a
     tb = db - np.einsum("tjk,tjk->tj", db, a)[..., None] * a
     tc = dc - np.einsum("tjk,tjk->tj", dc, a)[..., None] * a
-    return np.arctan2(np.einsum("tjk,tjk->tj", a, np.cross(tb, tc)), np.einsum("tjk,tjk->tj", tb, tc))
+    return np.arctan2(np.einsum("tjk,tjk->tj", a, cross(tb, tc)), np.einsum("tjk,tjk->tj", tb, tc))
 
 
 def triangles_with_angles(angles):
@@ -119,7 +137,7 @@ def rotation_between(a, b):
     ([0.0, 0.0, 1.0], [0.0, -1.0, 0.0])
     """
     a, b = np.asarray(a, float), np.asarray(b, float)
-    axis = np.cross(a, b)
+    axis = cross(a, b)
     sine, cosine = np.linalg.norm(axis), float(np.dot(a, b))
     if sine < 1e-12:
         if cosine > 0:

@@ -11,6 +11,8 @@ candidate set, and the last few against every triangle, so every query gets a tr
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .geometry import cross
+
 # Inside test tolerance on the normalised coefficients: a query on an edge belongs to both triangles.
 INSIDE_TOLERANCE = 1e-12
 
@@ -27,9 +29,9 @@ def _coefficients(queries, triangles):
     query is on the triangle's side of the origin).
     """
     a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
-    la = np.einsum("ij,ij->i", queries, np.cross(b, c))
-    lb = np.einsum("ij,ij->i", queries, np.cross(c, a))
-    lc = np.einsum("ij,ij->i", queries, np.cross(a, b))
+    la = np.einsum("ij,ij->i", queries, cross(b, c))
+    lb = np.einsum("ij,ij->i", queries, cross(c, a))
+    lc = np.einsum("ij,ij->i", queries, cross(a, b))
     lam = np.stack([la, lb, lc], axis=1)
     total = lam.sum(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -15,7 +15,7 @@ unsigned, so it cannot see a flip; the ``flipped`` count of the summary does).
 import numpy as np
 
 from .certify import certify
-from .geometry import (corner_angles, signed_solid_angles, spherical_angles, triangle_areas,  # noqa: F401
+from .geometry import (corner_angles, cross, signed_solid_angles, spherical_angles, triangle_areas,  # noqa: F401
                        triangles_with_angles)
 
 SUMMARY_KEYS = ("valid", "flipped", "degree", "max_norm_error", "mean_abs_angle_diff_deg",
@@ -55,7 +55,7 @@ def _triangle_frames(vertices, faces):
     length1 = np.linalg.norm(e1, axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         x2 = np.einsum("ij,ij->i", e1, e2) / length1
-        y2 = np.linalg.norm(np.cross(e1, e2), axis=1) / length1
+        y2 = np.linalg.norm(cross(e1, e2), axis=1) / length1
     frames = np.zeros((len(faces), 2, 2))
     frames[:, 0, 0] = length1
     frames[:, 0, 1] = x2

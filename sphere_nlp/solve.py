@@ -59,6 +59,7 @@ import numpy as np
 from . import interrupts
 from .nlp import DEFAULT_FORMULATION, AngleNLP, LogChordNLP, status_kind
 from .errors import UsageError
+from .geometry import cross
 from .heap import arrays_on_heap
 from .names import ON_LIMIT  # noqa: F401  (what a stopped margin stage yields; defined there for a light --help)
 from .settings import DEFAULT_SETTINGS, SolverSettings
@@ -196,7 +197,7 @@ def independent_vertices(positions, degrees=None):
     P = positions[candidates]
     first = int(np.argmax(P[:, 2]))
     second = int(np.argmin(np.abs(P @ P[first])))
-    normal = np.cross(P[first], P[second])
+    normal = cross(P[first], P[second])
     third = int(np.argmax(np.abs(P @ normal)))
     return [int(candidates[first]), int(candidates[second]), int(candidates[third])]
 

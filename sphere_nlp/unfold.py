@@ -33,6 +33,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee, shortest_path
 
 from . import sparse_lu
 from .certify import spherical_angles
+from .geometry import cross
 from .heap import arrays_on_heap
 
 
@@ -140,7 +141,7 @@ def _place_by_angle(pu, pv, angle_at_u, chord_uw):
     if collapsed.any():
         toward_v[collapsed], length[collapsed] = tangent_bases(pu[collapsed])[:, :, 0], 1.0
     toward_v /= length
-    left = np.cross(pu, toward_v)
+    left = cross(pu, toward_v)
     half = np.clip(chord_uw / 2, 0.0, 1.0)
     arc = 2 * np.arcsin(half)
     direction = np.cos(angle_at_u)[:, None] * toward_v + np.sin(angle_at_u)[:, None] * left
@@ -398,8 +399,8 @@ def tangent_bases(positions):
     """
     helper = np.zeros_like(positions)
     helper[np.arange(len(positions)), np.argmin(np.abs(positions), axis=1)] = 1.0
-    e1 = _unit(np.cross(positions, helper))
-    e2 = np.cross(positions, e1)
+    e1 = _unit(cross(positions, helper))
+    e2 = cross(positions, e1)
     return np.stack([e1, e2], axis=2)
 
 
@@ -418,7 +419,7 @@ def angle_gradients(positions, faces):
     """
     P = positions[faces]
     a, b, c = P, np.roll(P, -1, axis=1), np.roll(P, -2, axis=1)
-    ab, ac = np.cross(a, b), np.cross(a, c)
+    ab, ac = cross(a, b), cross(a, c)
     ab2 = np.einsum("tjk,tjk->tj", ab, ab)[..., None]
     ac2 = np.einsum("tjk,tjk->tj", ac, ac)[..., None]
     ab_scaled = np.divide(ab, ab2, out=np.zeros_like(ab), where=ab2 > 0)        # (a x b)/|a x b|^2

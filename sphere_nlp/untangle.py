@@ -48,6 +48,7 @@ from scipy.sparse.csgraph import connected_components
 
 from . import interrupts, sparse_lu
 from .certify import certify, signed_solid_angles
+from .geometry import cross
 
 # A region's boundary must lie within arccos(0.2) ~ 78 degrees of its centre for the gnomonic
 # projection: beyond that the plane coordinates blow up (and at 90 degrees they do not exist).
@@ -117,7 +118,7 @@ def mean_value_weights(mesh_vertices, faces):
     to_prev = np.roll(P, 1, axis=1) - P
     len_next = np.linalg.norm(to_next, axis=2)
     len_prev = np.linalg.norm(to_prev, axis=2)
-    angle = np.arctan2(np.linalg.norm(np.cross(to_next, to_prev), axis=2),
+    angle = np.arctan2(np.linalg.norm(cross(to_next, to_prev), axis=2),
                        np.einsum("tjk,tjk->tj", to_next, to_prev))
     # Clip so a (nearly) straight corner gives a large but finite weight.
     half_tan = np.tan(np.clip(angle / 2, 1e-12, np.pi / 2 - 1e-6))
@@ -225,9 +226,9 @@ class _RegionError(Exception):
 
 def _tangent_basis(normal):
     helper = np.eye(3)[np.argmin(np.abs(normal))]
-    e1 = np.cross(normal, helper)
+    e1 = cross(normal, helper)
     e1 /= np.linalg.norm(e1)
-    return e1, np.cross(normal, e1)
+    return e1, cross(normal, e1)
 
 
 class _Reference:
@@ -246,7 +247,7 @@ class _Reference:
         ab, ac = b - a, c - a
         length = np.linalg.norm(ab, axis=1)
         along = np.einsum("ij,ij->i", ab, ac) / length
-        height = np.linalg.norm(np.cross(ab, ac), axis=1) / length
+        height = np.linalg.norm(cross(ab, ac), axis=1) / length
         # Inverse of the edge matrix [[|ab|, along], [0, height]] of the triangle in its own plane.
         inverse = np.zeros((len(faces), 2, 2))
         inverse[:, 0, 0] = 1 / length
