@@ -108,3 +108,32 @@ def test_tiny_triangles_keep_their_angles():
     X, info = unfold(c, angles, excess=excess)
     assert certify(X, F).valid
     assert np.abs(spherical_angles(X, F) - angles).max() < 1e-6
+
+
+def test_cross_is_numpys_bit_for_bit():
+    from sphere_nlp.geometry import cross
+
+    rng = np.random.default_rng(0)
+    for shape_u, shape_v in [((500, 3), (500, 3)), ((40, 3, 3), (40, 3, 3)), ((3,), (500, 3)), ((20, 1, 3), (1, 6, 3))]:
+        u = rng.normal(size=shape_u) * 10.0 ** rng.integers(-30, 30, size=shape_u)
+        v = rng.normal(size=shape_v)
+        assert np.array_equal(cross(u, v), np.cross(u, v))
+
+
+def test_edges_come_sorted_once_each_with_their_two_faces():
+    V, F = icosphere(3)
+    F = F[np.random.default_rng(1).permutation(len(F))]
+    c = build_connectivity(F, len(V))
+    pairs = np.sort(np.concatenate([F[:, [1, 2]], F[:, [2, 0]], F[:, [0, 1]]]), axis=1)
+    assert np.array_equal(c.edges, np.unique(pairs, axis=0))
+    for k in (0, 1):          # each edge's faces hold both its vertices
+        assert (np.sort(F[c.edge_faces[:, k]], axis=1)[:, :, None] == c.edges[:, None, :]).any(1).all()
+
+
+def test_a_results_summaries_are_computed_once_and_handed_out_as_copies():
+    V, F = cylinder()
+    r = sphere_nlp.parameterize((V, F))
+    first = r.usability()
+    first["qc_max"] = -1.0
+    assert r.usability()["qc_max"] >= 1.0
+    assert r.usability()["mean_abs_log_area"] == r.distortion()["mean_abs_log_area"]

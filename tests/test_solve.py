@@ -510,3 +510,15 @@ def test_the_size_cap_stops_a_stage_and_projects_its_iterate():
     # The caller's max_iter replaces the cap (and reaching it fails, unless on_limit="project").
     with pytest.raises(sphere_nlp.SolveError, match="Maximum_Iterations_Exceeded"):
         sphere_nlp.parameterize(spike_sphere(30), settings=settings, max_iter=10)
+
+
+def test_multipliers_started_at_zero_reach_the_same_optimum():
+    # multiplier_estimate_max_vertices: large meshes start IPOPT's constraint multipliers at 0
+    # instead of its least-squares estimate; where the optimum is attained, where it starts from
+    # must not change it.
+    V, F = ellipsoid(1, axes=(1.0, 2.0, 0.7))
+    results = [sphere_nlp.parameterize((V, F), settings=SolverSettings(multiplier_estimate_max_vertices=limit))
+               for limit in (len(V) + 1, len(V))]
+    assert all(r.certificate.valid and r.converged for r in results)
+    assert results[1].objective == pytest.approx(results[0].objective, rel=1e-9)
+    assert np.abs(results[1].angles - results[0].angles).max() < 1e-6
