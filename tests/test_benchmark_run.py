@@ -129,3 +129,17 @@ def test_the_tables_note_survives_a_rewrite_and_a_file_without_one_has_none(tmp_
     assert bench.existing_note(str(path)) == "Every row ran alone."
     bench.write_tables(rows, str(path), bench.existing_note(str(path)))
     assert path.read_text().count("Every row ran alone.") == 1
+
+
+def test_hand_written_notes_below_the_table_survive_a_rewrite(tmp_path):
+    # --append keeps what is written below run.POSTSCRIPT_MARK (runs outside the table).
+    rows = [{"mesh": "a.off", "mode": "equal-angles", "formulation": "log-chord", "iterations": 3,
+             "timings_s": {"total": 1.0}, "objective": 1.0, "certificate": {"valid": True}, "commit": "c"}]
+    path = tmp_path / "t.md"
+    bench.write_tables(rows, str(path))
+    assert bench.existing_postscript(str(path)) == ""
+    postscript = "A 692k run.\n\nIts spread."
+    bench.write_tables(rows, str(path), "", postscript)
+    bench.write_tables(rows, str(path), "", bench.existing_postscript(str(path)))
+    assert bench.existing_postscript(str(path)) == postscript
+    assert path.read_text().count("A 692k run.") == 1
