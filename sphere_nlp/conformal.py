@@ -58,8 +58,9 @@ def lumped_mass(vertices, faces):
     return sp.diags(scatter_to_vertices(faces, triangle_areas(vertices, faces) / 3, len(vertices)))
 
 
-# From this many free vertices the Dirichlet solves are ordered by METIS nested dissection: at 692k
-# vertices 6.7 s a solve against SuperLU's own 9.9 s; at 173k the same 1.3 s either way.
+# From this many free vertices the Dirichlet solves are ordered by METIS nested dissection, which
+# fills less than SuperLU's own ordering on large meshes and gains nothing below (docs/tuning.md,
+# "Large meshes").
 NESTED_DISSECTION_UNKNOWNS = 300_000
 
 

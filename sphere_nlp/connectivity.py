@@ -193,7 +193,7 @@ def _unique_edges(half, n_vertices):
     half-edge (k,), and how many half-edges each edge has (m,).
 
     Each edge is one int64 key low * n + high: sorting those is several times faster than numpy's
-    unique over rows (0.1 s against 0.9 s at 173k vertices), in the same order.
+    unique over rows, and gives the same order.
     """
     key = np.sort(half, axis=1)
     keys, inverse, counts = np.unique(key[:, 0] * np.int64(n_vertices) + key[:, 1],

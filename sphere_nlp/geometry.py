@@ -11,9 +11,9 @@ import numpy as np
 def cross(u, v):
     """Cross product of 3-vectors along the last axis (broadcasting), as ``np.cross``.
 
-    The same arithmetic as ``np.cross`` (bit for bit) without its axis handling and temporaries:
-    5-8 times faster on 10^5-10^6 vectors, where the certificate, the start's gauge and the unfold
-    take thousands of them per step.
+    The same arithmetic as ``np.cross`` (bit for bit) without its axis handling and temporaries,
+    several times faster on the 10^5-10^6 vectors that the certificate, the start's gauge and the
+    unfold take at every step.
 
     >>> cross(np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])).tolist()
     [0.0, 0.0, 1.0]

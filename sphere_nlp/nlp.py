@@ -454,8 +454,8 @@ class _ProgressCallback(ca.Callback):
         return True
 
     def eval_buffer(self, arg, res):
-        # Buffers, not DMs: CasADi's DM-to-numpy conversion goes through a Python list, seconds an
-        # iteration at 10^6 variables. The buffers are CasADi's, so whatever is kept is copied.
+        # Buffers, not DMs: CasADi's DM-to-numpy conversion goes through a Python list (docs/design.md,
+        # "Large meshes"). The buffers are CasADi's, so whatever is kept is copied.
         values = dict(zip(ca.nlpsol_out(), arg))
 
         def vector(name):

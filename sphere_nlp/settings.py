@@ -109,8 +109,8 @@ class SolverSettings:
     multiplier_estimate_max_vertices : int
         From this many vertices IPOPT starts the constraint multipliers at 0 instead of its
         least-squares estimate (``constr_mult_init_max`` 0): the estimate costs one factorisation of
-        the KKT matrix (2-3 s at 173k vertices) and at these sizes comes out above IPOPT's cap of
-        1000 and is discarded (the Loop armadillo: the same iterates either way; docs/tuning.md).
+        the KKT matrix and at these sizes comes out above IPOPT's cap of 1000 and is discarded
+        (docs/tuning.md).
     warm_start_options : mapping
         Added to a run warm-started from an earlier one's multipliers.
     excess_window : float
