@@ -64,15 +64,22 @@ def lumped_mass(vertices, faces):
 NESTED_DISSECTION_UNKNOWNS = 300_000
 
 
-def _dirichlet_solve(K, values, fixed):
-    """Solve K x = 0 on the free vertices with x = values on ``fixed``; values is (n, k), returns (n, k)."""
+def _dirichlet_solve(K, values, fixed, vertex_order=None):
+    """Solve K x = 0 on the free vertices with x = values on ``fixed``; values is (n, k), returns (n, k).
+
+    ``vertex_order``: a nested-dissection order of all vertices (new -> old), restricted to the free
+    ones for a large solve instead of ordering afresh."""
     n = K.shape[0]
     free = np.ones(n, bool)
     free[fixed] = False
     x = np.array(values, dtype=float)
     K = K.tocsr()
     rhs = -(K[free][:, ~free] @ x[~free])
-    ordering = "metis" if np.count_nonzero(free) >= NESTED_DISSECTION_UNKNOWNS else None
+    ordering = None
+    if np.count_nonzero(free) >= NESTED_DISSECTION_UNKNOWNS:
+        # new -> old among the free vertices: the order's free vertices, renumbered
+        ordering = ("metis" if vertex_order is None
+                    else (np.cumsum(free) - 1)[np.asarray(vertex_order)[free[vertex_order]]])
     x[free] = sparse_lu.solve(K[free][:, free], np.asarray(rhs, dtype=float), ordering=ordering)
     return x
 
@@ -163,7 +170,7 @@ def linear_beltrami_solver(plane, faces, mu, fixed, targets):
     return _dirichlet_solve(K, values, fixed)
 
 
-def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None):
+def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None, vertex_order=None):
     """Linear spherical conformal map of Choi, Lam & Lui (2015), "FLASH", SIAM J. Imaging Sci. 8(1).
 
     Two linear solves, as in the paper:
@@ -210,6 +217,9 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None):
         Fraction of vertices pinned near the south pole in step 2.
     angles : (t, 3) float array, optional
         Corner angles of the metric to map conformally (default: the surface's).
+    vertex_order : (n,) int array, optional
+        A nested-dissection order of the vertices (``Connectivity.vertex_order``), which the two
+        solves restrict to their unknowns on large meshes instead of ordering afresh.
 
     Returns
     -------
@@ -240,7 +250,7 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None):
     boundary[p2] = [1, 0]
     boundary[p3] = third
     stiffness = _cotan_laplacian_of_corners(faces, corners, n)
-    z = _dirichlet_solve(stiffness, boundary, [p1, p2, p3])
+    z = _dirichlet_solve(stiffness, boundary, [p1, p2, p3], vertex_order)
     z -= z.mean(axis=0)
     # Scale the plane so the big triangle (around the north pole) and the triangle nearest the south
     # pole get about the same size on the sphere.
@@ -276,7 +286,7 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None):
         if not np.isfinite(plane[fixed]).all():
             break                                            # a pinned vertex at the plane's infinity
         try:
-            solved = _dirichlet_solve(stiffness, plane, fixed)
+            solved = _dirichlet_solve(stiffness, plane, fixed, vertex_order)
         except RuntimeError:                                # singular, or not finite
             solved = None
         if solved is not None and np.isfinite(solved).all():

@@ -35,6 +35,8 @@ class Connectivity:
         Local corner index (0..2) opposite the edge in I1 and in I2.
     vertex_degree : (n,) int array
         Number of corners (= triangles = edges) at each vertex.
+
+    Derived data that costs seconds on large meshes is computed once and kept (``vertex_order``).
     """
 
     faces: np.ndarray
@@ -43,6 +45,18 @@ class Connectivity:
     edge_faces: np.ndarray
     edge_opposite_corners: np.ndarray
     vertex_degree: np.ndarray
+
+    def vertex_order(self):
+        """METIS nested-dissection order of the vertices along the edges (new -> old index),
+        computed at the first call: the fill-reducing order that the start's and the unfold's sparse
+        solves on large meshes restrict to their unknowns (4 s of METIS at 692k vertices, once)."""
+        if "_vertex_order" not in self.__dict__:
+            from .sparse_lu import nested_dissection
+            a, b = self.edges[:, 0], self.edges[:, 1]
+            graph = sp.csr_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])),
+                                  shape=(self.n_vertices, self.n_vertices))
+            self.__dict__["_vertex_order"] = nested_dissection(graph)     # frozen: set once, here
+        return self.__dict__["_vertex_order"]
 
     @property
     def n_faces(self):

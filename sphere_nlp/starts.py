@@ -82,9 +82,13 @@ def conformal_start(connectivity, vertices, weights=None, angles=None, progress=
     from .conformal import conformal_map
     from .embedding import mobius_centre
 
+    from .conformal import NESTED_DISSECTION_UNKNOWNS
+
     faces = connectivity.faces
+    # The mesh's nested-dissection order, shared with the unfold's solves (computed once).
+    order = connectivity.vertex_order() if connectivity.n_vertices >= NESTED_DISSECTION_UNKNOWNS else None
     with np.errstate(all="ignore"):
-        positions = mobius_centre(conformal_map(vertices, faces, angles=angles), weights)
+        positions = mobius_centre(conformal_map(vertices, faces, angles=angles, vertex_order=order), weights)
     if not np.isfinite(positions).all():
         return None
     if certify(positions, faces).valid:

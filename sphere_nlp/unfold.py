@@ -849,7 +849,8 @@ def unfold(connectivity, angles, seed_face=None, average=True, correction=True, 
     # Computed once for the walk's repairs and the final correction (none for the walk alone), and
     # counted in the correction's time.
     clock = time.perf_counter()
-    vertex_order = shared_vertex_order(F, connectivity.n_vertices) if correction else None
+    vertex_order = (connectivity.vertex_order() if connectivity.n_vertices >= NESTED_DISSECTION_VERTICES
+                    else None) if correction else None
     ordering_s = time.perf_counter() - clock
     clock = time.perf_counter()
     positions, levels, repairs = walk(connectivity, A, seed, chords=chords, average=average,

@@ -153,3 +153,21 @@ def test_the_start_names_each_of_its_parts_to_the_progress_function():
     assert certify(positions, F).valid and kind == "conformal"
     assert [call[0] for call in calls] == ["start (conformal map)", "start (Mobius gauge)"]
     assert all(call[4] >= 0 for call in calls)
+
+
+def test_the_meshs_vertex_order_is_computed_once_and_orders_flashs_solves(monkeypatch):
+    # Connectivity.vertex_order: METIS on the edge graph, kept; FLASH's two Dirichlet solves restrict
+    # it to their free vertices (from NESTED_DISSECTION_UNKNOWNS, lowered here) and solve the same
+    # systems as with an order of their own.
+    from sphere_nlp import conformal, sparse_lu, unfold
+    from sphere_nlp.shapes import icosphere
+
+    V, F = icosphere(4)
+    V = V * [1.0, 1.3, 0.8]
+    C = build_connectivity(F, len(V))
+    order = C.vertex_order()
+    assert order is C.vertex_order() and sorted(order.tolist()) == list(range(len(V)))
+    assert np.array_equal(order, sparse_lu.nested_dissection(unfold._vertex_graph(F, len(V))))
+    monkeypatch.setattr(conformal, "NESTED_DISSECTION_UNKNOWNS", 0)
+    shared, own = conformal.conformal_map(V, F, vertex_order=order), conformal.conformal_map(V, F)
+    assert np.abs(shared - own).max() < 1e-9 and certify(shared, F).valid
