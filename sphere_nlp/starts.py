@@ -79,10 +79,8 @@ def conformal_start(connectivity, vertices, weights=None, angles=None, progress=
     -------
     (positions, kind) with kind "conformal" or "conformal-untangled", or None.
     """
-    from .conformal import conformal_map
+    from .conformal import NESTED_DISSECTION_UNKNOWNS, conformal_map
     from .embedding import mobius_centre
-
-    from .conformal import NESTED_DISSECTION_UNKNOWNS
 
     faces = connectivity.faces
     # The mesh's nested-dissection order, shared with the unfold's solves (computed once).

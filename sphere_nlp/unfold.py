@@ -254,7 +254,7 @@ def walk(connectivity, angles, seed_face, chords=None, average=True, repair=True
         ill-conditioned triangles reach if the error so far, amplified, would pass
         ``WALK_FORCED_REPAIR_ERROR``.
     vertex_order : (n,) int array, optional
-        The repairs' fill-reducing vertex order (:func:`shared_vertex_order`); default: each
+        The repairs' fill-reducing vertex order (``Connectivity.vertex_order``); default: each
         repair orders its part of the mesh itself.
 
     Returns
@@ -483,7 +483,7 @@ def unknown_ordering(faces, n, vertex_order=None):
     The vertex order (:func:`sparse_lu.nested_dissection` or :func:`vertex_ordering`) with a vertex's
     two unknowns adjacent; ordering the mesh graph rather than the matrix's (4x the edges) costs half
     as much for the same fill. ``vertex_order`` (the n vertices in a nested-dissection order, e.g.
-    :func:`shared_vertex_order` restricted to them) is used instead of ordering from scratch from
+    ``Connectivity.vertex_order`` restricted to them) is used instead of ordering from scratch from
     NESTED_DISSECTION_VERTICES vertices.
     """
     if n >= NESTED_DISSECTION_VERTICES and vertex_order is not None:
@@ -493,18 +493,6 @@ def unknown_ordering(faces, n, vertex_order=None):
     else:
         order, permc_spec = vertex_ordering(faces, n), "MMD_AT_PLUS_A"
     return (2 * np.asarray(order)[:, None] + np.arange(2)).ravel(), permc_spec
-
-
-def shared_vertex_order(faces, n):
-    """Nested-dissection order of a whole mesh's vertices, for every correction of one unfold
-    (:func:`correct`'s ``vertex_order``), or None below NESTED_DISSECTION_VERTICES.
-
-    A walk's repair corrects the completed part of the mesh and the final correction all of it: on
-    the 692k-vertex Loop armadillo one urgent repair at 92% of the faces ordered a graph almost as
-    large as the final one (METIS ~4 s each). The whole mesh's order restricted to a part keeps its
-    separators, so it orders the part about as well.
-    """
-    return sparse_lu.nested_dissection(_vertex_graph(faces, n)) if n >= NESTED_DISSECTION_VERTICES else None
 
 
 def _restricted_order(vertex_order, used):
@@ -703,7 +691,7 @@ def correct(faces, angles, positions, max_iterations=100, tolerance=1e-13, slow_
         Above this largest residual, slow but steady progress (see :data:`SLOW_PROGRESS`) goes on;
         ``np.inf`` stops at the first step that does not halve the sum of squares.
     vertex_order : (n_all,) int array, optional
-        A nested-dissection order of all vertices (:func:`shared_vertex_order`), restricted to the
+        A nested-dissection order of all vertices (``Connectivity.vertex_order``), restricted to the
         vertices of ``faces`` for the factorisation instead of ordering them afresh.
 
     Returns
@@ -846,8 +834,9 @@ def unfold(connectivity, angles, seed_face=None, average=True, correction=True, 
         seed = central_face(connectivity, reliable & (np.sin(A).min(1) >= WELL_CONDITIONED_SIN))
     else:
         seed = int(seed_face)
-    # Computed once for the walk's repairs and the final correction (none for the walk alone), and
-    # counted in the correction's time.
+    # One order for the walk's repairs and the final correction (none for the walk alone): the whole
+    # mesh's order restricted to a part keeps its separators, so it orders the part about as well as
+    # a METIS call of its own would. Counted in the correction's time.
     clock = time.perf_counter()
     vertex_order = (connectivity.vertex_order() if connectivity.n_vertices >= NESTED_DISSECTION_VERTICES
                     else None) if correction else None

@@ -48,7 +48,7 @@ from scipy.sparse.csgraph import connected_components
 
 from . import interrupts, sparse_lu
 from .certify import certify, signed_solid_angles
-from .geometry import cross
+from .geometry import corner_angles, cross
 
 # A region's boundary must lie within arccos(0.2) ~ 78 degrees of its centre for the gnomonic
 # projection: beyond that the plane coordinates blow up (and at 90 degrees they do not exist).
@@ -118,8 +118,7 @@ def mean_value_weights(mesh_vertices, faces):
     to_prev = np.roll(P, 1, axis=1) - P
     len_next = np.linalg.norm(to_next, axis=2)
     len_prev = np.linalg.norm(to_prev, axis=2)
-    angle = np.arctan2(np.linalg.norm(cross(to_next, to_prev), axis=2),
-                       np.einsum("tjk,tjk->tj", to_next, to_prev))
+    angle = corner_angles(V, F)
     # Clip so a (nearly) straight corner gives a large but finite weight.
     half_tan = np.tan(np.clip(angle / 2, 1e-12, np.pi / 2 - 1e-6))
     rows = np.r_[F.ravel(), F.ravel()]

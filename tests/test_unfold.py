@@ -351,7 +351,7 @@ def test_corrections_share_one_nested_dissection_order_restricted_to_their_part(
 
     monkeypatch.setattr(U, "NESTED_DISSECTION_VERTICES", 100)
     V, F = icosphere(3)
-    order = U.shared_vertex_order(F, len(V))
+    order = build_connectivity(F, len(V)).vertex_order()
     assert sorted(order.tolist()) == list(range(len(V)))
     part = F[: 2 * len(F) // 3]
     used = np.unique(part)
