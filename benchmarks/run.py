@@ -264,7 +264,8 @@ def status_text(row):
             return "authalic + polish (%s, polished to IPOPT's %s)" % (budget, end)
         authalic = route.get("authalic") or {}
         # The descent's reason in words: its step budget, time, tolerance or what stopped it.
-        why = {"steps": "its step budget", "time": "its time", "tolerance": "its tolerance"}
+        why = {"steps": "its step budget", "time": "its time", "tolerance": "its tolerance",
+               "aim": "reaching 0.03 in its extra steps"}
         reason = authalic.get("descent_stopped")
         stopped = (", descent: %d steps, stopped by %s" % (authalic["descent_steps"], why.get(reason, reason))
                    if reason else "")

@@ -249,7 +249,7 @@ class DescentTrace:
 
 
 def authalic_descent(positions, faces, target_excess, deadline=None, stall=1e-3, tolerance=1e-4,
-                     max_steps=None, memory=10, refactor_every=10, progress=None):
+                     max_steps=None, memory=10, refactor_every=10, progress=None, aim=None, extra_steps=0):
     """Riemannian L-BFGS of :class:`AuthalicEnergy` from a certified map; (positions, trace).
 
     Directions come from the two-loop recursion over the last ``memory`` steps (vectors in R^3n,
@@ -262,7 +262,10 @@ def authalic_descent(positions, faces, target_excess, deadline=None, stall=1e-3,
     value), after ``max_steps``, when the mean |log area ratio| is below ``tolerance``, when the
     energy fell by less than ``stall`` of itself over the last 50 steps, or where the map has a
     triangle too small for double precision to give it an area or a preconditioner (then it
-    returns the last map, or ``positions`` unchanged, with ``trace.stopped`` saying so).
+    returns the last map, or ``positions`` unchanged, with ``trace.stopped`` saying so). With
+    ``aim``, a descent whose ``max_steps`` end above that mean |log area ratio| goes on while it is
+    above it, for at most ``extra_steps`` more steps (``trace.stopped`` "aim" when it got there):
+    a budget in steps, not seconds, that still gives a body with thin limbs what it needs.
     ``progress(stage, step, energy, 0.0, seconds)`` is called after each step.
     """
     faces = np.asarray(faces, dtype=np.int64)
@@ -280,11 +283,17 @@ def authalic_descent(positions, faces, target_excess, deadline=None, stall=1e-3,
     s_list, y_list = [], []
     began = time.perf_counter()
     step_count = 0
+    start_error = float(np.mean(np.abs(ratio)))
     while True:
         step_count += 1
+        error = trace.mean_abs_log_area[-1] if trace.mean_abs_log_area else start_error
         if max_steps is not None and step_count > max_steps:
-            trace.stopped = "steps"
-            break
+            if aim is None or step_count > max_steps + extra_steps:
+                trace.stopped = "steps"
+                break
+            if error <= aim:
+                trace.stopped = "aim" if step_count > max_steps + 1 else "steps"
+                break
         if deadline is not None and time.perf_counter() > deadline:
             trace.stopped = "time"
             break
@@ -386,14 +395,15 @@ class AuthalicMap:
 
 
 def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps=None, tolerance=1e-4,
-                 stall=1e-3, progress=None):
+                 stall=1e-3, progress=None, aim=None, extra_steps=0):
     """A bijective map of the mesh whose spherical areas approach ``target_excess``.
 
     ``start`` is a certified map of the mesh (the conformal start); ``vertices`` the 3D positions
     (for untangling SEM's flipped triangles). Runs :func:`stretch_energy_map`, kept if it (after
     untangling) is bijective and nearer the targets, then at most ``max_steps`` steps of
     :func:`authalic_descent` from the better map (until its mean |log area ratio| is below
-    ``tolerance``), within ``max_time`` seconds. The result is the
+    ``tolerance``; up to ``extra_steps`` more while above ``aim``), within ``max_time`` seconds. The
+    result is the
     start itself at worst.
     """
     faces = np.asarray(faces, dtype=np.int64)
@@ -430,7 +440,8 @@ def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps
             best, best_error = candidate, error
     sem_seconds = time.perf_counter() - began
     X, trace = authalic_descent(best, faces, target_excess, deadline=deadline, max_steps=max_steps,
-                                tolerance=tolerance, stall=stall, progress=progress)
+                                tolerance=tolerance, stall=stall, progress=progress, aim=aim,
+                                extra_steps=extra_steps)
     return AuthalicMap(positions=X, mean_abs_log_area=mean_abs_log_area(X, faces, target_excess),
                        start_mean_abs_log_area=start_error, sem_mean_abs_log_area=sem_error,
                        seconds=time.perf_counter() - began, sem_seconds=sem_seconds, trace=trace)

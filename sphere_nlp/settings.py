@@ -257,6 +257,10 @@ class SolverSettings:
         iterations of the NLP's polish in each of its runs for n vertices, at most
         ``polish_iterations``, none below ``min_polish_iterations`` (its iterate is then projected
         onto the constraints). ``max_time`` replaces it by a wall-clock limit.
+    authalic_extension : float
+        Area modes, default budget: a descent whose steps end above the 0.03 the modes aim for
+        goes on while above it, for at most this many times its steps more (still counted in
+        steps, so still the same map at any load; docs/tuning.md).
     authalic_share : float
         With ``max_time``: the fraction of the time left that the authalic stage may take; the
         polish has the rest.
@@ -334,6 +338,7 @@ class SolverSettings:
     authalic_steps: int = 300
     authalic_work: int = 1_500_000
     authalic_tolerance: float = 5e-3
+    authalic_extension: float = 3.0
     polish_iterations: int = 30
     polish_work: int = 60_000
     min_polish_iterations: int = 10

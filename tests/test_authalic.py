@@ -81,6 +81,31 @@ def test_descent_reaches_areas_a_map_can_have():
     assert trace.mean_abs_log_area[-1] < 1e-3 < authalic.mean_abs_log_area(start, F, signed_solid_angles(X_true, F))
 
 
+def test_descent_past_its_steps_only_while_above_the_aim():
+    """The budget's extra steps: a descent whose steps end above the aim goes on to the first step
+    below it (the same iterates as a longer plain descent, cut there), one that ends below it stops
+    at its steps."""
+    V, F = ellipsoid(2)
+    X_true = V / np.linalg.norm(V, axis=1, keepdims=True)
+    start, _ = starting_positions(build_connectivity(F, len(V)), V)
+    target = signed_solid_angles(X_true, F)
+    _, plain = authalic.authalic_descent(start, F, target, stall=0.0, tolerance=0.0, max_steps=60)
+    errors = np.array(plain.mean_abs_log_area)
+    aim = float(errors[30])
+    assert errors[4] > aim
+    X, trace = authalic.authalic_descent(start, F, target, stall=0.0, tolerance=0.0, max_steps=5, aim=aim,
+                                         extra_steps=100)
+    assert trace.stopped == "aim" and len(trace.energy) == 31
+    assert trace.mean_abs_log_area == plain.mean_abs_log_area[:31]
+    assert certify(X, F).valid
+    _, capped = authalic.authalic_descent(start, F, target, stall=0.0, tolerance=0.0, max_steps=5, aim=aim,
+                                          extra_steps=10)
+    assert capped.stopped == "steps" and len(capped.energy) == 15 and capped.mean_abs_log_area[-1] > aim
+    _, below = authalic.authalic_descent(start, F, target, stall=0.0, tolerance=0.0, max_steps=40, aim=aim,
+                                         extra_steps=100)
+    assert below.stopped == "steps" and len(below.energy) == 40
+
+
 def test_stretch_energy_step_moves_area_to_a_limbed_meshes_tentacles():
     """The conformal map shrinks the tentacles by orders of magnitude; SEM's global solves give them
     area back (kept only once certified, which the stage's untangling provides)."""
@@ -131,13 +156,20 @@ def test_route_keeps_the_authalic_map_when_the_polish_would_raise_the_area_error
 
 def test_default_budget_is_counted_in_steps_and_iterations():
     settings = SolverSettings(authalic_steps=7, authalic_work=35_000, polish_iterations=3, min_polish_iterations=1)
-    assert polish.default_budget(1000, settings) == {"descent_steps": 35, "polish_iterations": 3}
-    assert polish.default_budget(10 ** 6, settings) == {"descent_steps": 7, "polish_iterations": 0}
+    assert polish.default_budget(1000, settings) == {"descent_steps": 35, "extra_descent_steps": 105,
+                                                     "polish_iterations": 3}
+    assert polish.default_budget(10 ** 6, settings) == {"descent_steps": 7, "extra_descent_steps": 21,
+                                                        "polish_iterations": 0}
     assert polish.default_budget(10, settings)["descent_steps"] == 70
     V, F = ellipsoid(3)
     C, _, targets = _problem(V, F)
     route = polish.authalic_route(C, V, targets, budget=polish.default_budget(len(V), settings), settings=settings)
-    assert route.record["authalic"]["descent_steps"] <= polish.default_budget(len(V), settings)["descent_steps"]
+    budget = polish.default_budget(len(V), settings)
+    steps = route.record["authalic"]["descent_steps"]
+    assert steps <= budget["descent_steps"] + budget["extra_descent_steps"]
+    if steps > budget["descent_steps"]:
+        # Past its steps only while above the aim, and it stopped there or at the extension's end.
+        assert route.record["authalic"]["descent_stopped"] in ("aim", "steps", "stalled", "tolerance")
     assert all(stage["iterations"] <= 3 for stage in route.solution.stages if stage["name"] != "projection")
     assert certify(route.positions, F).valid
 
