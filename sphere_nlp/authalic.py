@@ -403,8 +403,7 @@ def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps
     untangling) is bijective and nearer the targets, then at most ``max_steps`` steps of
     :func:`authalic_descent` from the better map (until its mean |log area ratio| is below
     ``tolerance``; up to ``extra_steps`` more while above ``aim``), within ``max_time`` seconds. The
-    result is the
-    start itself at worst.
+    result is the start itself at worst.
     """
     faces = np.asarray(faces, dtype=np.int64)
     target_excess = np.asarray(target_excess, dtype=float)
