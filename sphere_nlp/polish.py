@@ -140,7 +140,8 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
                            "objective": authalic_objective,
                            "mean_abs_log_area": stage.mean_abs_log_area,
                            "start_mean_abs_log_area": stage.start_mean_abs_log_area,
-                           "sem_mean_abs_log_area": stage.sem_mean_abs_log_area}}
+                           "sem_mean_abs_log_area": stage.sem_mean_abs_log_area,
+                           "share_s": None if stage_time is None else round(stage_time, 3)}}
     polish_began = time.perf_counter()
     polished = None
     no_polish = "no time left for the polish"
@@ -283,4 +284,10 @@ def describe(record):
         clause += "; above the %.2g aimed for: %s" % (
             AREA_AIM, _DESCENT_ENDS.get(stopped, "the start's smallest triangles are too small for double "
                                         "precision (thin limbs), which the area-keeping stage cannot undo"))
+    if authalic.get("share_s") is not None:
+        # Under a time limit: what each stage took, the area-keeping one against its share of it.
+        clause += "; time: start %.1f s, area-keeping %.1f s of its %.1f s" % (
+            record["start_seconds"], authalic["seconds"], authalic["share_s"])
+        if record.get("polish"):
+            clause += ", refinement %.1f s" % record["polish"]["seconds"]
     return clause

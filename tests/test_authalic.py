@@ -241,6 +241,20 @@ def test_cli_max_time_none_and_the_run_line_names_the_answer(tmp_path):
     assert out.is_file()
 
 
+def test_the_run_line_under_a_time_limit_says_what_each_stage_took_of_its_share(tmp_path):
+    out = tmp_path / "c.sphere.off"
+    run = subprocess.run([sys.executable, "-m", "sphere_nlp", str(MODELS / "cylinder.off"), "--target",
+                          "original-areas", "--max-time", "60", "-o", str(out)],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    last = [line for line in run.stderr.splitlines() if line.startswith("wrote")][-1]
+    match = re.search(r"; time: start ([\d.]+) s, area-keeping ([\d.]+) s of its ([\d.]+) s"
+                      r"(?:, refinement ([\d.]+) s)?$", last)
+    assert match, last
+    # The area-keeping stage's share is three quarters of the time left after the start.
+    assert float(match[2]) <= float(match[3]) + 0.1 and 30 < float(match[3]) <= 45
+
+
 def test_both_steps_of_the_authalic_stage_report_progress():
     """SEM's solves and the descent's steps each report (the run's progress line every 2 s in a log)."""
     V, F = ellipsoid(2)
