@@ -117,7 +117,8 @@ class SphericalParameterization:
     peak_rss_mb : float
     start : str
         The solve's starting point: "conformal", "conformal-untangled", "embedding",
-        "embedding-uncentred", "linear" or "given" (positions passed as ``start``).
+        "embedding-uncentred", "embedding-invalid" (the embedding rounded to an invalid map: parts
+        too thin for double precision), "linear" or "given" (positions passed as ``start``).
     corner_weighting : str
         The angle term's corner weighting ("relative" or "uniform").
     floor_corners, floor_triangles : int

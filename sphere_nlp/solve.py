@@ -95,7 +95,8 @@ class AngleSolution:
         The starting point.
     start : str
         Which starting point: "conformal", "conformal-untangled", "embedding",
-        "embedding-uncentred" or "linear".
+        "embedding-uncentred", "embedding-invalid" (not a certified map; see
+        :func:`sphere_nlp.starts.embedding_start`) or "linear".
     start_s : float
         Seconds spent finding it (conformal map, untangling, gauge).
     converged : bool

@@ -107,7 +107,9 @@ def embedding_start(connectivity, vertices=None, weights=None):
 
     Returns
     -------
-    (positions, kind) with kind "embedding" or "embedding-uncentred".
+    (positions, kind) with kind "embedding", "embedding-uncentred", or "embedding-invalid" where
+    even the uncentred embedding fails its certificate (parts too thin for double precision: a
+    valid embedding in exact arithmetic, rounded).
     """
     from .embedding import convex_embedding, mobius_centre, punctured_embedding
 
@@ -120,7 +122,7 @@ def embedding_start(connectivity, vertices=None, weights=None):
     centred = mobius_centre(positions, weights)
     if certify(centred, faces).valid:
         return centred, "embedding"
-    return positions, "embedding-uncentred"
+    return positions, "embedding-uncentred" if certify(positions, faces).valid else "embedding-invalid"
 
 
 def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", angles=None, progress=None):
@@ -142,10 +144,12 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", a
 
     Returns
     -------
-    positions : (n, 3) array of unit vectors, a certified spherical triangulation
+    positions : (n, 3) array of unit vectors, a certified spherical triangulation unless ``kind`` is
+        "embedding-invalid"
     kind : str
-        Which start was used: "conformal", "conformal-untangled", "embedding" or
-        "embedding-uncentred".
+        Which start was used: "conformal", "conformal-untangled", "embedding",
+        "embedding-uncentred", or "embedding-invalid" (the conformal map could not be untangled and
+        the embedding fails its certificate: :func:`embedding_start`).
     """
     faces = connectivity.faces
     weights = None if vertices is None else vertex_areas(vertices, faces, connectivity.n_vertices)

@@ -171,3 +171,27 @@ def test_the_meshs_vertex_order_is_computed_once_and_orders_flashs_solves(monkey
     monkeypatch.setattr(conformal, "NESTED_DISSECTION_UNKNOWNS", 0)
     shared, own = conformal.conformal_map(V, F, vertex_order=order), conformal.conformal_map(V, F)
     assert np.abs(shared - own).max() < 1e-9 and certify(shared, F).valid
+
+
+def test_an_embedding_rounded_to_an_invalid_map_says_so(monkeypatch):
+    # The convex embedding is valid in exact arithmetic; where rounding breaks it (parts too thin for
+    # double precision) and the punctured embedding fails as well, the start is named as invalid
+    # instead of passing for a certified one.
+    import sphere_nlp.embedding as embedding
+
+    V, F = ellipsoid(1)
+    connectivity = build_connectivity(F, len(V))
+    positions, kind = starts.embedding_start(connectivity, V)
+    assert kind in ("embedding", "embedding-uncentred") and certify(positions, F).valid
+
+    def folded(*args, **keywords):
+        X = V / np.linalg.norm(V, axis=1, keepdims=True)
+        X[0] = -X[0]                                # one vertex thrown across the sphere
+        return X
+
+    monkeypatch.setattr(embedding, "convex_embedding", folded)
+    monkeypatch.setattr(embedding, "punctured_embedding", folded)
+    positions, kind = starts.embedding_start(connectivity, V)
+    assert kind == "embedding-invalid" and not certify(positions, F).valid
+    _, kind = starts.starting_positions(connectivity, V, kind="embedding")
+    assert kind == "embedding-invalid"
