@@ -286,12 +286,11 @@ def authalic_descent(positions, faces, target_excess, deadline=None, stall=1e-3,
     start_error = float(np.mean(np.abs(ratio)))
     while True:
         step_count += 1
-        error = trace.mean_abs_log_area[-1] if trace.mean_abs_log_area else start_error
         if max_steps is not None and step_count > max_steps:
             if aim is None or step_count > max_steps + extra_steps:
                 trace.stopped = "steps"
                 break
-            if error <= aim:
+            if (trace.mean_abs_log_area[-1] if trace.mean_abs_log_area else start_error) <= aim:
                 trace.stopped = "aim" if step_count > max_steps + 1 else "steps"
                 break
         if deadline is not None and time.perf_counter() > deadline:

@@ -838,8 +838,8 @@ def unfold(connectivity, angles, seed_face=None, average=True, correction=True, 
     # mesh's order restricted to a part keeps its separators, so it orders the part about as well as
     # a METIS call of its own would. Counted in the correction's time.
     clock = time.perf_counter()
-    vertex_order = (connectivity.vertex_order() if connectivity.n_vertices >= NESTED_DISSECTION_VERTICES
-                    else None) if correction else None
+    vertex_order = (connectivity.vertex_order()
+                    if correction and connectivity.n_vertices >= NESTED_DISSECTION_VERTICES else None)
     ordering_s = time.perf_counter() - clock
     clock = time.perf_counter()
     positions, levels, repairs = walk(connectivity, A, seed, chords=chords, average=average,

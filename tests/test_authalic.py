@@ -227,13 +227,18 @@ def test_start_conformal_keeps_the_nlp_route():
     assert result.area_route is None and result.converged and result.start == "conformal"
 
 
-def test_cli_max_time_none_and_the_run_line_names_the_answer(tmp_path):
-    out = tmp_path / "c.sphere.off"
+def _cylinder_run_line(out, max_time):
+    """The CLI's "wrote" line for the cylinder in original-areas with ``--max-time max_time``."""
     run = subprocess.run([sys.executable, "-m", "sphere_nlp", str(MODELS / "cylinder.off"), "--target",
-                          "original-areas", "--max-time", "none", "-o", str(out)],
+                          "original-areas", "--max-time", max_time, "-o", str(out)],
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
-    last = [line for line in run.stderr.splitlines() if line.startswith("wrote")][-1]
+    return [line for line in run.stderr.splitlines() if line.startswith("wrote")][-1]
+
+
+def test_cli_max_time_none_and_the_run_line_names_the_answer(tmp_path):
+    out = tmp_path / "c.sphere.off"
+    last = _cylinder_run_line(out, "none")
     # In the map's terms: the solver's objective and statuses are the report's.
     assert re.search(r"; the (area-keeping map refined to the best map the solver finds"
                      r"|first area-keeping map, not refined: .*)$",
@@ -242,12 +247,7 @@ def test_cli_max_time_none_and_the_run_line_names_the_answer(tmp_path):
 
 
 def test_the_run_line_under_a_time_limit_says_what_each_stage_took_of_its_share(tmp_path):
-    out = tmp_path / "c.sphere.off"
-    run = subprocess.run([sys.executable, "-m", "sphere_nlp", str(MODELS / "cylinder.off"), "--target",
-                          "original-areas", "--max-time", "60", "-o", str(out)],
-                         capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, run.stderr
-    last = [line for line in run.stderr.splitlines() if line.startswith("wrote")][-1]
+    last = _cylinder_run_line(tmp_path / "c.sphere.off", "60")
     match = re.search(r"; time: start ([\d.]+) s, area-keeping ([\d.]+) s of its ([\d.]+) s"
                       r"(?:, refinement ([\d.]+) s)?$", last)
     assert match, last
