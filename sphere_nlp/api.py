@@ -23,7 +23,7 @@ from .mesh_io import (GLTF_FORMATS, check_mesh_path, read_mesh, write_image, wri
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, failure_advice, status_kind
 from .settings import DEFAULT_SETTINGS, SolverSettings
 from .polish import authalic_route, default_budget
-from .solve import check_floors, ON_LIMIT, solve_angles
+from .solve import check_floors, NO_VALID_START, ON_LIMIT, solve_angles
 from .starts import checked_positions
 from .targets import MODES, make_targets
 from .texture import checker_image, spherical_uv, split_at_seams
@@ -32,6 +32,9 @@ from .unfold import sphere_positions
 
 def solve_failure_message(status, iterations):
     """One line saying why an angle solve is not a result (IPOPT's status, or the constraints)."""
+    if status == NO_VALID_START:
+        return ("no valid starting map: no conformal map of the mesh could be untangled and its convex "
+                "embedding folds in double precision (parts too thin to place)")
     if status_kind(status) == "solved":
         # IPOPT converged, but to angles that break a constraint: a zero or negative angle or excess
         # ((3)-(5)), or an equality (6)-(8) off by more than 1e-8.
@@ -116,9 +119,12 @@ class SphericalParameterization:
         edge chords against those of the solved angles; ``walk_s`` and ``correction_s`` seconds.
     peak_rss_mb : float
     start : str
-        The solve's starting point: "conformal", "conformal-untangled", "embedding",
-        "embedding-uncentred", "embedding-invalid" (the embedding rounded to an invalid map: parts
-        too thin for double precision), "linear" or "given" (positions passed as ``start``).
+        The solve's starting point: "conformal", "conformal-untangled", "surface-conformal",
+        "surface-conformal-untangled" (the surface's own conformal map, where the one to the target
+        angles could not be untangled), "embedding", "embedding-uncentred", "embedding-invalid" (no
+        valid start: the embedding rounded to an invalid map, parts too thin for double precision;
+        nothing is solved, status "No_Valid_Start"), "linear" or "given" (positions passed as
+        ``start``).
     corner_weighting : str
         The angle term's corner weighting ("relative" or "uniform").
     floor_corners, floor_triangles : int
@@ -768,9 +774,10 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
 
     if area_route is not None:
         pass                                    # the route's map is certified and placed already
-    elif not solution.success and interrupts.deadline_passed():
-        # Out of time and nothing to write: the unfolding of a failed iterate is skipped
-        # (bipyramid(1000) stopped by max_time: 26 s of unfolding after the limit).
+    elif not solution.success and (interrupts.deadline_passed() or solution.status == NO_VALID_START):
+        # Out of time, or folded angles from no valid start, and nothing to write: the unfolding
+        # of a failed iterate is skipped (bipyramid(1000) stopped by max_time: 26 s of unfolding
+        # after the limit).
         positions, unfold_info = np.full((connectivity.n_vertices, 3), np.nan), {}
     else:
         positions, unfold_info = sphere_positions(connectivity, solution.angles, solution.excess)

@@ -41,7 +41,7 @@ from .authalic import authalic_map, mean_abs_log_area
 from .certify import certify
 from .settings import DEFAULT_SETTINGS
 from .nlp import status_kind
-from .solve import AngleSolution, max_constraint_violation, objective_value, solve_angles
+from .solve import AngleSolution, max_constraint_violation, objective_value, solve_angles, without_valid_start
 from .starts import angles_and_excess, starting_positions
 from .unfold import sphere_positions
 
@@ -197,16 +197,9 @@ def _without_valid_start(connectivity, targets, start, start_kind, certificate, 
     """The route's answer when no start is valid: the conformal map's flipped triangles could not
     be untangled and the convex embedding collapsed too (thin parts below double precision), so
     there is nothing to descend from or polish; a failed solution that says so."""
-    with np.errstate(all="ignore"):
-        angles, excess = angles_and_excess(start, connectivity.faces)
-        objective = objective_value(targets, angles, excess)
-        violation = max_constraint_violation(connectivity, angles, excess)
     reason = ("no valid starting map: the conformal map could not be untangled and the convex embedding has "
               "%s (parts too thin for double precision)" % certificate.reason)
-    solution = AngleSolution(
-        angles=angles, excess=excess, success=False, status="No_Valid_Start", iterations=0,
-        objective=objective, max_constraint_violation=violation, stages=[], initial_angles=angles,
-        initial_excess=excess, start="authalic", converged=False)
+    solution = without_valid_start(connectivity, targets, start, "authalic")
     record = {"start": start_kind, "start_seconds": round(start_s, 3), "authalic": None, "answer": "none",
               "reason": reason, "budget": None, "polish": None, "objective": None, "mean_abs_log_area": None,
               "seconds": round(start_s, 3)}

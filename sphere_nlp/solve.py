@@ -63,7 +63,7 @@ from .geometry import cross
 from .heap import arrays_on_heap
 from .names import ON_LIMIT  # noqa: F401  (what a stopped margin stage yields; defined there for a light --help)
 from .settings import DEFAULT_SETTINGS, SolverSettings
-from .starts import initial_point
+from .starts import angles_and_excess, initial_point
 from .targets import Targets
 
 # The projection of a stage stopped by max_time (on_limit="project") may run past the run's
@@ -94,9 +94,10 @@ class AngleSolution:
     initial_angles, initial_excess : arrays
         The starting point.
     start : str
-        Which starting point: "conformal", "conformal-untangled", "embedding",
-        "embedding-uncentred", "embedding-invalid" (not a certified map; see
-        :func:`sphere_nlp.starts.embedding_start`) or "linear".
+        Which starting point (:func:`sphere_nlp.starts.starting_positions`): "conformal",
+        "conformal-untangled", "surface-conformal", "surface-conformal-untangled", "embedding",
+        "embedding-uncentred", "embedding-invalid" (not a certified map: nothing is solved, status
+        :data:`NO_VALID_START`) or "linear".
     start_s : float
         Seconds spent finding it (conformal map, untangling, gauge).
     converged : bool
@@ -360,6 +361,12 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
         began = time.perf_counter()
         initial = initial_point(connectivity, targets, start, vertices, gauge, progress)
         start_s = time.perf_counter() - began
+        if initial.kind == "embedding-invalid":
+            # Its angles and excesses are those of folded triangles, some negative: no log-chord
+            # start, and nothing IPOPT could be trusted to recover from.
+            solution = without_valid_start(connectivity, targets, initial.positions, initial.kind)
+            solution.start_s = start_s
+            return solution
         context = _Context.make(connectivity, targets, formulation, settings, ipopt_options, max_iter, max_time,
                                 progress, initial)
         context.log_e_band = excess_band
@@ -367,6 +374,22 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
                     else _solve_paper_form(context))
     solution.start_s = start_s
     return solution
+
+
+NO_VALID_START = "No_Valid_Start"
+
+
+def without_valid_start(connectivity, targets, positions, start):
+    """The failed solution (status :data:`NO_VALID_START`, no iterations) of a start that is not a
+    valid map: no conformal map could be untangled and the convex embedding rounds to folded
+    triangles (parts too thin for double precision). Its angles are the folded map's."""
+    with np.errstate(all="ignore"):
+        angles, excess = angles_and_excess(positions, connectivity.faces)
+        objective = objective_value(targets, angles, excess)
+        violation = max_constraint_violation(connectivity, angles, excess)
+    return AngleSolution(angles=angles, excess=excess, success=False, status=NO_VALID_START, iterations=0,
+                         objective=objective, max_constraint_violation=violation, stages=[],
+                         initial_angles=angles, initial_excess=excess, start=start, converged=False)
 
 
 def stage_iteration_cap(n_vertices, settings=DEFAULT_SETTINGS):

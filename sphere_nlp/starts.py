@@ -49,7 +49,9 @@ class InitialPoint:
     positions : (n, 3) array or None
         The valid spherical triangulation the angles come from (None for the linear guess).
     kind : str
-        "conformal", "conformal-untangled", "embedding", "embedding-uncentred", "given" or "linear".
+        "conformal", "conformal-untangled", "surface-conformal", "surface-conformal-untangled",
+        "embedding", "embedding-uncentred", "embedding-invalid", "given" or "linear"
+        (:func:`starting_positions`).
     """
 
     angles: np.ndarray
@@ -147,9 +149,11 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", a
     positions : (n, 3) array of unit vectors, a certified spherical triangulation unless ``kind`` is
         "embedding-invalid"
     kind : str
-        Which start was used: "conformal", "conformal-untangled", "embedding",
-        "embedding-uncentred", or "embedding-invalid" (the conformal map could not be untangled and
-        the embedding fails its certificate: :func:`embedding_start`).
+        Which start was used: "conformal", "conformal-untangled", "surface-conformal",
+        "surface-conformal-untangled" (the map conformal to ``angles`` could not be untangled, the
+        surface's own could), "embedding", "embedding-uncentred", or "embedding-invalid" (no
+        conformal map could be untangled and the embedding fails its certificate:
+        :func:`embedding_start`).
     """
     faces = connectivity.faces
     weights = None if vertices is None else vertex_areas(vertices, faces, connectivity.n_vertices)
@@ -166,6 +170,13 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", a
     if kind in ("auto", "conformal") and vertices is not None and not interrupts.deadline_passed():
         announce("conformal map")
         found = conformal_start(connectivity, vertices, weights, angles, progress)
+        if found is None and angles is not None and not interrupts.deadline_passed():
+            # The targets' metric can fold a thin body past repair (a 50k eight-legged body's map to
+            # 2 pi / deg: 6,500 triangles still flipped after 80 s of untangling) and its convex
+            # embedding past double precision, where the surface's own conformal map untangles.
+            announce("conformal map of the surface")
+            found = conformal_start(connectivity, vertices, weights, None, progress)
+            found = found and (found[0], "surface-" + found[1])
     if found is None:
         announce("convex embedding")
     positions, kind = found or embedding_start(connectivity, vertices, weights)

@@ -104,7 +104,11 @@ def test_a_signal_at_a_random_moment_of_the_first_second_ends_the_run_with_nothi
                                                        % signal.Signals(status - 128).name), stderr
             assert "Traceback" not in stderr and "WARNING" not in stderr, stderr
         else:
-            assert status in (-first, 128 + first), (k, status, stderr)
+            # CPython's own start-up: killed by the signal, KeyboardInterrupt (130), or, when a SIGINT
+            # lands in the import of the site module (more likely on a loaded machine), "Fatal Python
+            # error: init_import_site" and status 1.
+            assert (status in (-first, 128 + first)
+                    or (status == 1 and "init_import_site" in stderr)), (k, status, stderr)
     assert handled >= 16, handled
 
 

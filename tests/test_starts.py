@@ -195,3 +195,46 @@ def test_an_embedding_rounded_to_an_invalid_map_says_so(monkeypatch):
     assert kind == "embedding-invalid" and not certify(positions, F).valid
     _, kind = starts.starting_positions(connectivity, V, kind="embedding")
     assert kind == "embedding-invalid"
+
+
+def test_a_target_metric_that_cannot_be_untangled_falls_back_on_the_surfaces_conformal_map(monkeypatch):
+    # A thin body's map to the 2 pi / deg metric can stay folded after untangling where the
+    # surface's own conformal map does not: the start is then the surface's map, named so.
+    V, F = ellipsoid(1)
+    connectivity = build_connectivity(F, len(V))
+    surface, kind = starts.starting_positions(connectivity, V)
+    assert kind == "conformal"
+    real = starts.conformal_start
+    monkeypatch.setattr(starts, "conformal_start",
+                        lambda c, v, w=None, angles=None, *rest: None if angles is not None else real(c, v, w, None, *rest))
+    equal = make_targets("equal-angles", V, F, connectivity.vertex_degree)
+    positions, kind = starts.starting_positions(connectivity, V, angles=equal.angles)
+    assert kind == "surface-conformal" and certify(positions, F).valid
+    assert np.array_equal(positions, surface)
+
+
+def test_no_valid_start_is_a_failure_named_before_any_solving(monkeypatch, tmp_path):
+    # Folded start angles (negative excesses) would reach IPOPT as logarithms of negative numbers:
+    # the solve stops at once with its own status, and the run says why and writes nothing.
+    import warnings
+    import sphere_nlp
+    import sphere_nlp.embedding as embedding
+    from sphere_nlp.errors import SolveError
+
+    V, F = ellipsoid(1)
+
+    def folded(*args, **keywords):
+        X = V / np.linalg.norm(V, axis=1, keepdims=True)
+        X[0] = -X[0]
+        return X
+
+    monkeypatch.setattr(starts, "conformal_start", lambda *args, **keywords: None)
+    monkeypatch.setattr(embedding, "convex_embedding", folded)
+    monkeypatch.setattr(embedding, "punctured_embedding", folded)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = sphere_nlp.parameterize((V, F), target="equal-angles", check=False)
+        assert not result.success and result.status == "No_Valid_Start" and result.iterations == 0
+        assert result.start == "embedding-invalid" and result.stages == []
+        with pytest.raises(SolveError, match="no valid starting map"):
+            sphere_nlp.parameterize((V, F))
