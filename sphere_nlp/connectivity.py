@@ -52,9 +52,7 @@ class Connectivity:
         solves on large meshes restrict to their unknowns (4 s of METIS at 692k vertices, once)."""
         if "_vertex_order" not in self.__dict__:
             from .sparse_lu import nested_dissection
-            a, b = self.edges[:, 0], self.edges[:, 1]
-            graph = sp.csr_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])),
-                                  shape=(self.n_vertices, self.n_vertices))
+            graph = vertex_graph(self.edges, self.n_vertices)
             self.__dict__["_vertex_order"] = nested_dissection(graph)     # frozen: set once, here
         return self.__dict__["_vertex_order"]
 
@@ -75,6 +73,20 @@ class Connectivity:
         t = self.n_faces
         return sp.csr_matrix((np.ones(3 * t), (self.faces.ravel(), np.arange(3 * t))),
                              shape=(self.n_vertices, 3 * t))
+
+
+def vertex_graph(cells, n_vertices):
+    """The mesh graph as an (n, n) sparse matrix: a nonzero for each pair of vertices that share an
+    edge of ``cells`` (edges (m, 2) or triangles (t, 3), of the whole mesh or a part), both ways.
+
+    The pattern that fill-reducing orders are computed on (nested dissection, reverse Cuthill-McKee).
+    """
+    cells = np.asarray(cells)
+    if cells.shape[1] == 2:
+        a, b = cells[:, 0], cells[:, 1]
+    else:
+        a, b = cells.ravel(), np.roll(cells, -1, axis=1).ravel()
+    return sp.csr_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(n_vertices, n_vertices))
 
 
 def _half_edges(faces):

@@ -159,7 +159,8 @@ def test_the_meshs_vertex_order_is_computed_once_and_orders_flashs_solves(monkey
     # Connectivity.vertex_order: METIS on the edge graph, kept; FLASH's two Dirichlet solves restrict
     # it to their free vertices (from NESTED_DISSECTION_UNKNOWNS, lowered here) and solve the same
     # systems as with an order of their own.
-    from sphere_nlp import conformal, sparse_lu, unfold
+    from sphere_nlp import conformal, sparse_lu
+    from sphere_nlp.connectivity import vertex_graph
     from sphere_nlp.shapes import icosphere
 
     V, F = icosphere(4)
@@ -167,7 +168,7 @@ def test_the_meshs_vertex_order_is_computed_once_and_orders_flashs_solves(monkey
     C = build_connectivity(F, len(V))
     order = C.vertex_order()
     assert order is C.vertex_order() and sorted(order.tolist()) == list(range(len(V)))
-    assert np.array_equal(order, sparse_lu.nested_dissection(unfold._vertex_graph(F, len(V))))
+    assert np.array_equal(order, sparse_lu.nested_dissection(vertex_graph(F, len(V))))
     monkeypatch.setattr(conformal, "NESTED_DISSECTION_UNKNOWNS", 0)
     shared, own = conformal.conformal_map(V, F, vertex_order=order), conformal.conformal_map(V, F)
     assert np.abs(shared - own).max() < 1e-9 and certify(shared, F).valid

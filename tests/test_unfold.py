@@ -301,7 +301,8 @@ def test_ordered_factorisation_solves_like_the_default(ordering):
     # solution: a symmetric positive definite normal matrix, solved both ways, one and several
     # right-hand sides, in the matrix's own numbering.
     from sphere_nlp import sparse_lu
-    from sphere_nlp.unfold import _angle_jacobian, _vertex_graph, normal_matrix
+    from sphere_nlp.connectivity import vertex_graph
+    from sphere_nlp.unfold import _angle_jacobian, normal_matrix
 
     V, F = random_sphere_mesh(2000)
     n = len(V)
@@ -311,7 +312,7 @@ def test_ordered_factorisation_solves_like_the_default(ordering):
     if ordering == "metis":
         options = {}
     else:
-        perm = sparse_lu.nested_dissection(_vertex_graph(F, n))
+        perm = sparse_lu.nested_dissection(vertex_graph(F, n))
         options = dict(permc_spec="NATURAL")
         ordering = (2 * perm[:, None] + np.arange(2)).ravel()
     rhs = np.random.default_rng(1).normal(size=(2 * n, 3))
