@@ -175,8 +175,9 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", a
             # 2 pi / deg: 6,500 triangles still flipped after 80 s of untangling) and its convex
             # embedding past double precision, where the surface's own conformal map untangles.
             announce("conformal map of the surface")
-            found = conformal_start(connectivity, vertices, weights, None, progress)
-            found = found and (found[0], "surface-" + found[1])
+            surface = conformal_start(connectivity, vertices, weights, None, progress)
+            if surface is not None:
+                found = surface[0], "surface-" + surface[1]
     if found is None:
         announce("convex embedding")
     positions, kind = found or embedding_start(connectivity, vertices, weights)
