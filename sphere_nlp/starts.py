@@ -172,8 +172,8 @@ def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", a
         found = conformal_start(connectivity, vertices, weights, angles, progress)
         if found is None and angles is not None and not interrupts.deadline_passed():
             # The targets' metric can fold a thin body past repair (a 50k eight-legged body's map to
-            # 2 pi / deg: 6,500 triangles still flipped after 80 s of untangling) and its convex
-            # embedding past double precision, where the surface's own conformal map untangles.
+            # 2 pi / deg: still folded after 80 s of untangling) and its convex embedding past double
+            # precision, where the surface's own conformal map untangles.
             announce("conformal map of the surface")
             surface = conformal_start(connectivity, vertices, weights, None, progress)
             if surface is not None:
