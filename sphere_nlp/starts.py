@@ -117,14 +117,16 @@ def embedding_start(connectivity, vertices=None, weights=None):
 
     faces = connectivity.faces
     positions = convex_embedding(connectivity, vertices, weights="uniform")
-    if not certify(positions, faces).valid:
+    convex_valid = certify(positions, faces).valid
+    if not convex_valid:
         # Lost to floating point (a degree-1,000 cap's ring shrinks exponentially): the embedding
         # around its largest-degree vertex instead, which places that ring evenly on the equator.
         positions = punctured_embedding(connectivity)
     centred = mobius_centre(positions, weights)
     if certify(centred, faces).valid:
         return centred, "embedding"
-    return positions, "embedding-uncentred" if certify(positions, faces).valid else "embedding-invalid"
+    valid = convex_valid or certify(positions, faces).valid     # the convex one is certified already
+    return positions, "embedding-uncentred" if valid else "embedding-invalid"
 
 
 def starting_positions(connectivity, vertices=None, kind="auto", gauge="area", angles=None, progress=None):
