@@ -174,24 +174,30 @@ def test_the_meshs_vertex_order_is_computed_once_and_orders_flashs_solves(monkey
     assert np.abs(shared - own).max() < 1e-9 and certify(shared, F).valid
 
 
+def _fold_the_embeddings(monkeypatch, V):
+    """Make the convex and the punctured embedding of (V, ...) come out folded: one vertex thrown
+    across the sphere, as rounding does to parts too thin for double precision."""
+    import sphere_nlp.embedding as embedding
+
+    def folded(*args, **keywords):
+        X = V / np.linalg.norm(V, axis=1, keepdims=True)
+        X[0] = -X[0]
+        return X
+
+    monkeypatch.setattr(embedding, "convex_embedding", folded)
+    monkeypatch.setattr(embedding, "punctured_embedding", folded)
+
+
 def test_an_embedding_rounded_to_an_invalid_map_says_so(monkeypatch):
     # The convex embedding is valid in exact arithmetic; where rounding breaks it (parts too thin for
     # double precision) and the punctured embedding fails as well, the start is named as invalid
     # instead of passing for a certified one.
-    import sphere_nlp.embedding as embedding
-
     V, F = ellipsoid(1)
     connectivity = build_connectivity(F, len(V))
     positions, kind = starts.embedding_start(connectivity, V)
     assert kind in ("embedding", "embedding-uncentred") and certify(positions, F).valid
 
-    def folded(*args, **keywords):
-        X = V / np.linalg.norm(V, axis=1, keepdims=True)
-        X[0] = -X[0]                                # one vertex thrown across the sphere
-        return X
-
-    monkeypatch.setattr(embedding, "convex_embedding", folded)
-    monkeypatch.setattr(embedding, "punctured_embedding", folded)
+    _fold_the_embeddings(monkeypatch, V)
     positions, kind = starts.embedding_start(connectivity, V)
     assert kind == "embedding-invalid" and not certify(positions, F).valid
     _, kind = starts.starting_positions(connectivity, V, kind="embedding")
@@ -214,24 +220,16 @@ def test_a_target_metric_that_cannot_be_untangled_falls_back_on_the_surfaces_con
     assert np.array_equal(positions, surface)
 
 
-def test_no_valid_start_is_a_failure_named_before_any_solving(monkeypatch, tmp_path):
+def test_no_valid_start_is_a_failure_named_before_any_solving(monkeypatch):
     # Folded start angles (negative excesses) would reach IPOPT as logarithms of negative numbers:
-    # the solve stops at once with its own status, and the run says why and writes nothing.
+    # the solve stops at once with its own status, and the run says why.
     import warnings
     import sphere_nlp
-    import sphere_nlp.embedding as embedding
     from sphere_nlp.errors import SolveError
 
     V, F = ellipsoid(1)
-
-    def folded(*args, **keywords):
-        X = V / np.linalg.norm(V, axis=1, keepdims=True)
-        X[0] = -X[0]
-        return X
-
     monkeypatch.setattr(starts, "conformal_start", lambda *args, **keywords: None)
-    monkeypatch.setattr(embedding, "convex_embedding", folded)
-    monkeypatch.setattr(embedding, "punctured_embedding", folded)
+    _fold_the_embeddings(monkeypatch, V)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         result = sphere_nlp.parameterize((V, F), target="equal-angles", check=False)
