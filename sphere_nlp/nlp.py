@@ -594,6 +594,39 @@ def _casadi_sparsity(csc):
     return ca.Sparsity(csc.shape[0], csc.shape[1], csc.indptr.tolist(), csc.indices.tolist())
 
 
+def nearest_semidefinite_blocks(upper_entries):
+    """Each symmetric 4x4 matrix, given by its upper triangle, with its negative eigenvalues set to 0.
+
+    The nearest positive semidefinite matrix in the Frobenius norm (Higham 1988), as used by
+    projected Newton methods on per-element Hessians.
+
+    Parameters
+    ----------
+    upper_entries : (10, k) array
+        Column-major upper triangle of k matrices: entries (0,0), (0,1), (1,1), (0,2), (1,2),
+        (2,2), (0,3), (1,3), (2,3), (3,3).
+
+    Returns
+    -------
+    (10, k) array, the same layout.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> upper = np.array([[1.0], [0.0], [-2.0], [0.0], [0.0], [3.0], [0.0], [0.0], [0.0], [0.0]])
+    >>> nearest_semidefinite_blocks(upper).ravel().tolist()
+    [1.0, 0.0, 0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0, 0.0]
+    """
+    rows = np.array([i for j in range(4) for i in range(j + 1)])
+    cols = np.array([j for j in range(4) for i in range(j + 1)])
+    matrices = np.zeros((upper_entries.shape[1], 4, 4))
+    matrices[:, rows, cols] = upper_entries.T
+    matrices[:, cols, rows] = upper_entries.T
+    eigenvalues, vectors = np.linalg.eigh(matrices)
+    projected = np.einsum("kij,kj,klj->kil", vectors, np.maximum(eigenvalues, 0.0), vectors)
+    return projected[:, rows, cols].T
+
+
 class _LogChordValues:
     """The log-chord NLP's objective, constraints and exact derivatives, in numpy.
 
@@ -663,6 +696,7 @@ class _LogChordValues:
             self._penalty_positions = entry_positions(pattern, rows[len(hu_rows):], cols[len(hu_cols):])
         self._cached_x = None
         self.modify_hessian = None           # a run's experimental Hessian hook (AngleNLP.solve)
+        self.semidefinite_below_log_excess = -np.inf     # LogChordNLP's semidefinite_below_excess
 
     def _at(self, x, derivatives=True):
         """At x: z (4, t), the objective f, its gradient with respect to h (flat, triangle-major),
@@ -712,6 +746,9 @@ class _LogChordValues:
         z, _, seed, _, d = self._at(x)
         weights = (lam_f * seed + self._At @ lam_g).reshape(self.n_faces, self._width).T
         blocks = self._triangle_hessian(z, *self._parameters, np.ascontiguousarray(weights))[0]
+        tiny = np.flatnonzero(z[3] < self.semidefinite_below_log_excess)
+        if len(tiny):
+            blocks[:, tiny] = nearest_semidefinite_blocks(blocks[:, tiny])
         values = np.zeros(self._hessian_nnz)
         values[self._block_positions] = blocks
         if self._P is not None:
@@ -1115,6 +1152,14 @@ class LogChordNLP(_AngleProblem):
         How IPOPT's function and derivative values are computed: by numpy over all
         triangles at once (default, faster), or by CasADi's interpreter one triangle at a time
         (the reference). The same numbers up to rounding.
+    semidefinite_below_excess : float
+        Numpy evaluation only: the Hessian block of every triangle whose excess is below this
+        (radians) is handed to IPOPT with its negative eigenvalues set to 0
+        (:func:`nearest_semidefinite_blocks`; 0, the default, never). On a thin limb's tips, far below
+        what positions hold, those blocks make the Lagrangian's Hessian indefinite on most
+        iterations, and IPOPT's inertia correction then adds a multiple of the identity to all of
+        it, which stalls the steps along the limb. Only the path changes: the KKT points are the
+        same (docs/tuning.md, "semidefinite_block_share").
 
     Notes
     -----
@@ -1124,7 +1169,8 @@ class LogChordNLP(_AngleProblem):
 
     def __init__(self, connectivity, targets, dropped_vertices=(), angle_margin=DEFAULT_SETTINGS.angle_margin,
                  dropped_penalty=DEFAULT_SETTINGS.dropped_penalty, area_form="linear", obtuse_corners=None,
-                 evaluation="numpy", hessian="exact", log_area_weights=None, log_u_band=None):
+                 evaluation="numpy", hessian="exact", log_area_weights=None, log_u_band=None,
+                 semidefinite_below_excess=0.0):
         if evaluation not in EVALUATIONS:
             raise ValueError("evaluation must be one of %s, not %r" % (EVALUATIONS, evaluation))
         if area_form not in ("linear", "log"):
@@ -1155,6 +1201,10 @@ class LogChordNLP(_AngleProblem):
         self.n_inequalities = 0          # (3)-(5) hold by construction (see the module docstring)
         if evaluation == "numpy":
             self._numeric = _LogChordValues(self._parts)
+            if semidefinite_below_excess > 0:
+                self._numeric.semidefinite_below_log_excess = float(np.log(semidefinite_below_excess))
+        elif semidefinite_below_excess > 0:
+            raise ValueError("semidefinite_below_excess needs the numpy evaluation")
         self.unbooked_build_s = time.perf_counter() - began
 
     def _variable_lower_bounds(self, inequalities, log_u_lower=None):

@@ -232,6 +232,12 @@ class SolverSettings:
     area_mode_hessian, angle_mode_hessian : {"exact", "clipped", "clipped-corners"}
         The Hessian the area and the angle modes hand IPOPT (:class:`sphere_nlp.nlp.LogChordNLP`'s
         ``hessian``; docs/tuning.md).
+    semidefinite_block_share : float
+        Log-chord: the Lagrangian Hessian's 4x4 block of every triangle whose excess is below this
+        fraction of its share of the sphere (4 pi / t) is handed to IPOPT with its negative
+        eigenvalues set to 0 (:class:`sphere_nlp.nlp.LogChordNLP`'s ``semidefinite_below_excess``;
+        0 never): a thin limb's tips, below what positions hold, make the Hessian indefinite and
+        IPOPT's inertia correction then damps every step (docs/tuning.md).
     projection_iterations : int
         Iteration cap of the projection of a stage stopped by the caller's limits (``max_iter``
         does not apply to it; ``max_time`` does).
@@ -330,6 +336,7 @@ class SolverSettings:
     near_start_options: MappingProxyType = _frozen(NEAR_START_OPTIONS)
     area_mode_hessian: str = "clipped"
     angle_mode_hessian: str = "clipped-corners"
+    semidefinite_block_share: float = 1e-16
     projection_iterations: int = 50
     min_stage_iterations: int = 300
     stage_iterations_per_vertex: float = 0.1
@@ -359,6 +366,8 @@ class SolverSettings:
                 raise ValueError("%s must be in [0, 1), not %r" % (name, getattr(self, name)))
         if not self.sliver_band >= 0:
             raise ValueError("sliver_band must be >= 0, not %r" % (self.sliver_band,))
+        if not self.semidefinite_block_share >= 0:
+            raise ValueError("semidefinite_block_share must be >= 0, not %r" % (self.semidefinite_block_share,))
         if self.corner_floor_pass not in ("start", "needed"):
             raise ValueError("corner_floor_pass must be 'start' or 'needed', not %r" % (self.corner_floor_pass,))
 

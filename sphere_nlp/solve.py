@@ -584,6 +584,8 @@ class _Context:
         """The log-chord NLP with this solve's left-out vertices, Hessian, margin and penalty."""
         keywords.setdefault("dropped_penalty", self.settings.dropped_penalty)
         keywords.setdefault("log_u_band", self.log_u_band)
+        keywords.setdefault("semidefinite_below_excess",
+                            self.settings.semidefinite_block_share * 4 * np.pi / self.n_faces)
         return LogChordNLP(self.connectivity, self.solve_targets if targets is None else targets,
                            dropped_vertices=self.dropped if dropped_vertices is None else dropped_vertices,
                            obtuse_corners=obtuse_corners, hessian=self.hessian,

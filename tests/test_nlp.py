@@ -108,6 +108,66 @@ def test_clipped_hessian_is_the_exact_one_less_the_negative_log_term(hessian):
         np.testing.assert_allclose(np.triu(clipped), np.triu(expected), rtol=1e-9, atol=1e-9)
 
 
+def test_semidefinite_blocks_are_the_nearest_positive_semidefinite_matrices():
+    # Higham (1988): the nearest PSD matrix in the Frobenius norm sets the negative eigenvalues to
+    # 0, so its distance is the norm of those eigenvalues; PSD blocks are left as they are.
+    from sphere_nlp.nlp import nearest_semidefinite_blocks
+
+    rng = np.random.default_rng(4)
+    rows, cols = np.triu_indices(4)
+    order = np.lexsort((rows, cols))                 # column-major upper triangle
+    rows, cols = rows[order], cols[order]
+    matrices = rng.standard_normal((50, 4, 4))
+    matrices = matrices + matrices.transpose(0, 2, 1)
+    projected = nearest_semidefinite_blocks(matrices[:, rows, cols].T)
+    full = np.zeros_like(matrices)
+    full[:, rows, cols] = projected.T
+    full[:, cols, rows] = projected.T
+    eigenvalues = np.linalg.eigvalsh(matrices)
+    assert (eigenvalues < 0).any(axis=1).sum() > 40                     # most need projecting
+    assert np.linalg.eigvalsh(full).min() >= -1e-12
+    distance = np.linalg.norm(full - matrices, axis=(1, 2))
+    np.testing.assert_allclose(distance, np.linalg.norm(np.minimum(eigenvalues, 0), axis=1), atol=1e-12)
+    np.testing.assert_allclose(nearest_semidefinite_blocks(projected), projected, atol=1e-12)
+
+
+def test_semidefinite_below_excess_projects_only_the_tiny_triangles_blocks():
+    # LogChordNLP(semidefinite_below_excess=s): the Hessian handed to IPOPT is the exact one except
+    # on the 4x4 blocks of triangles whose excess is below s, which are made positive semidefinite.
+    import casadi as ca
+
+    V, F = ellipsoid(1)
+    c = build_connectivity(F, len(V))
+    rng = np.random.default_rng(5)
+    targets = make_targets("original-angles", V, F, c.vertex_degree)
+    angles = np.full((c.n_faces, 3), np.pi / 3) + 0.1 * rng.random((c.n_faces, 3))
+    excess = angles.sum(1) - np.pi + 0.02
+    tiny = np.arange(c.n_faces) % 3 == 0
+    excess[tiny] = 1e-20
+    lam_f = 0.7
+    hessians = {}
+    for below in (0.0, 1e-18):
+        nlp = AngleNLP(c, targets, "log-chord", dropped_vertices=[0, 5, 11], semidefinite_below_excess=below)
+        x = nlp.pack(angles, excess)
+        lam_g = np.random.default_rng(6).standard_normal(nlp.n_equalities)
+        upper = nlp._numpy_problem()[2]["hess_lag"](x, ca.DM.zeros(0, 1), lam_f, lam_g).full()
+        hessians[below] = np.triu(upper) + np.triu(upper, 1).T
+    t = c.n_faces
+    variables = np.stack([3 * np.arange(t), 3 * np.arange(t) + 1, 3 * np.arange(t) + 2, 3 * t + np.arange(t)], 1)
+    negative = 0
+    for i in range(t):
+        block = np.ix_(variables[i], variables[i])
+        exact, handed = hessians[0.0][block], hessians[1e-18][block]
+        if tiny[i]:
+            assert np.linalg.eigvalsh(handed).min() >= -1e-9 * max(1.0, np.abs(exact).max())
+            negative += np.linalg.eigvalsh(exact).min() < -1e-6
+        else:
+            np.testing.assert_array_equal(handed, exact)
+    assert negative > 10                                           # the projection did something
+    with pytest.raises(ValueError, match="numpy evaluation"):
+        AngleNLP(c, targets, "log-chord", evaluation="casadi", semidefinite_below_excess=1e-18)
+
+
 def test_weighted_log_area_term_is_the_objectives_quadratic_model_at_the_targets():
     # The area continuation's term w (log e - log e')^2 with w = (e' / e_mean)^2
     # (solve.continuation_area_weights) has (9)'s area term's value, gradient (both 0) and second
