@@ -231,3 +231,23 @@ def test_the_angle_modes_hessian_changes_the_path_not_the_optimum():
         assert result.certificate.valid and result.max_constraint_violation < 1e-8
     assert runs["clipped-corners"].objective == pytest.approx(runs["exact"].objective, rel=1e-7)
     assert runs["clipped-corners"].iterations <= runs["exact"].iterations
+
+
+def test_semidefinite_tip_blocks_change_the_path_not_the_optimum(monkeypatch):
+    # Four limbs of 20-30 radii: their tips go below 1e-16 of their share, whose Hessian blocks are
+    # handed to IPOPT positive semidefinite (settings.semidefinite_block_share). The KKT points do
+    # not change: the same optimum as with the exact blocks, certified (docs/tuning.md).
+    from sphere_nlp import nlp
+
+    projected = []
+    project = nlp.nearest_semidefinite_blocks
+    monkeypatch.setattr(nlp, "nearest_semidefinite_blocks", lambda blocks: projected.append(blocks.shape[1])
+                        or project(blocks))
+    V, F = limbed_body(n_limbs=4, subdivisions=3, radius=0.15, length_ratios=(20, 30))
+    assert DEFAULT_SETTINGS.semidefinite_block_share == 1e-16
+    runs = {share: parameterize((V, F), settings=DEFAULT_SETTINGS.replace(semidefinite_block_share=share))
+            for share in (1e-16, 0.0)}
+    assert projected                                     # the default run projected some blocks
+    for result in runs.values():
+        assert result.certificate.valid and result.max_constraint_violation < 1e-8
+    assert runs[1e-16].objective == pytest.approx(runs[0.0].objective, rel=1e-7)
