@@ -594,6 +594,11 @@ def _casadi_sparsity(csc):
     return ca.Sparsity(csc.shape[0], csc.shape[1], csc.indptr.tolist(), csc.indices.tolist())
 
 
+# (row, column) of each stored entry of a triangle's 4x4 Hessian block: its upper triangle,
+# column-major, the order of the per-triangle Hessian function's outputs.
+BLOCK_UPPER_ENTRIES = [(i, j) for j in range(4) for i in range(j + 1)]
+
+
 def nearest_semidefinite_blocks(upper_entries):
     """Each symmetric 4x4 matrix, given by its upper triangle, with its negative eigenvalues set to 0.
 
@@ -603,8 +608,8 @@ def nearest_semidefinite_blocks(upper_entries):
     Parameters
     ----------
     upper_entries : (10, k) array
-        Column-major upper triangle of k matrices: entries (0,0), (0,1), (1,1), (0,2), (1,2),
-        (2,2), (0,3), (1,3), (2,3), (3,3).
+        The upper triangles of k matrices, entries in the order of :data:`BLOCK_UPPER_ENTRIES`:
+        (0,0), (0,1), (1,1), (0,2), (1,2), (2,2), (0,3), (1,3), (2,3), (3,3).
 
     Returns
     -------
@@ -617,8 +622,7 @@ def nearest_semidefinite_blocks(upper_entries):
     >>> nearest_semidefinite_blocks(upper).ravel().tolist()
     [1.0, 0.0, 0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0, 0.0]
     """
-    rows = np.array([i for j in range(4) for i in range(j + 1)])
-    cols = np.array([j for j in range(4) for i in range(j + 1)])
+    rows, cols = np.array(BLOCK_UPPER_ENTRIES).T
     matrices = np.zeros((upper_entries.shape[1], 4, 4))
     matrices[:, rows, cols] = upper_entries.T
     matrices[:, cols, rows] = upper_entries.T
@@ -1297,7 +1301,7 @@ class LogChordNLP(_AngleProblem):
             lagrangian_gradient = ca.mtimes(jacobian_8x4.T, weights)
             clipped = np.array([1.0, 1.0, 1.0, 1.0 if hessian == "clipped" else 0.0])
             hessian_4x4 = hessian_4x4 - ca.diag(ca.fmin(lagrangian_gradient, 0) * clipped)
-        upper = [(i, j) for j in range(4) for i in range(j + 1)]          # column-major upper triangle
+        upper = BLOCK_UPPER_ENTRIES
         triangle_hessian = ca.Function("sphere_nlp_triangle_hess", inputs + [weights],
                                        [ca.vertcat(*[hessian_4x4[i, j] for i, j in upper])])
 
