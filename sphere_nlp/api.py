@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from . import errors, interrupts
 from .certify import Certificate, certify, spherical_angles
@@ -563,10 +564,17 @@ def _check_arguments(angle_weight, area_weight, max_iter, max_time, ipopt_option
 
 
 def _bounded(function):
-    """Run ``function`` with Ctrl-C stopping IPOPT too, and ``max_time`` bounding the whole run.
+    """Run ``function`` with Ctrl-C stopping IPOPT too, ``max_time`` bounding the whole run, and
+    numpy's and scipy's BLAS on one thread.
 
     See :mod:`sphere_nlp.interrupts`: a SIGINT inside IPOPT would otherwise end only one stage.
     A program that set its own SIGINT handler keeps it.
+
+    One BLAS thread: OpenBLAS splits a dot product's sum by its thread count, so with one thread per
+    core the map depended on the machine's core count (and a batch worker, pinned to one thread,
+    mapped a mesh differently from the CLI); and the many small BLAS calls of the untangler's
+    L-BFGS-B cost ~10x more with a second thread when another process holds the other core
+    (docs/tuning.md, "One BLAS thread"). IPOPT's own linear algebra is not affected.
     """
     @functools.wraps(function)
     def bounded(*args, **kwargs):
@@ -576,7 +584,7 @@ def _bounded(function):
             if not (np.isfinite(max_time) and max_time > 0):
                 max_time = None                 # rejected inside with its message
         with interrupts.handled_signals(signals=(signal.SIGINT,), only_default=True), \
-                interrupts.deadline(max_time):
+                interrupts.deadline(max_time), threadpool_limits(limits=1, user_api="blas"):
             return function(*args, **kwargs)
     return bounded
 

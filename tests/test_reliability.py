@@ -487,3 +487,21 @@ def test_a_large_garbage_file_is_rejected_from_its_first_bytes(suffix, tmp_path)
     finally:
         tracemalloc.stop()
     assert peak < 4 * 2 ** 20                              # the header only, not 50 MB
+
+
+def test_a_run_keeps_numpy_and_scipy_blas_on_one_thread_and_gives_the_threads_back():
+    # OpenBLAS splits a reduction by its thread count: with the caller's thread count the map would
+    # depend on the machine (api._bounded). The caller's setting is restored afterwards.
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas_threads():
+        return [info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"]
+
+    V, F = meshgen.ellipsoid(2)
+    seen = []
+    with threadpool_limits(limits=2, user_api="blas"):
+        result = sphere_nlp.parameterize((V, F), progress=lambda *_: seen.append(blas_threads()))
+        after = blas_threads()
+    assert result.certificate.valid
+    assert seen and all(threads and set(threads) == {1} for threads in seen)
+    assert after and set(after) == {2}
