@@ -59,8 +59,10 @@ AREA_MODE_IPOPT_OPTIONS = MappingProxyType({
 ANGLE_MODE_MARGIN_OPTIONS = MappingProxyType({"mu_init": 1e-6})
 
 # ... unless a large share of the start lies below the area floor (floor_crowd_share): thin limbs,
-# whose triangles' bounds bind one after another under the small barrier.
-FLOOR_CROWD_MARGIN_OPTIONS = MappingProxyType({"mu_init": 1e-4})
+# whose corners' floors bind one after another under a small barrier, each step cut short where one
+# more corner reaches its floor. IPOPT's adaptive barrier (Nocedal, Waechter & Waltz 2009) raises mu
+# again while the iterate hugs its bounds, instead of only lowering it.
+FLOOR_CROWD_MARGIN_OPTIONS = MappingProxyType({"mu_init": 1e-4, "mu_strategy": "adaptive"})
 
 # A warm-started run (re-centred window, inequality stage from the equality solution): a small
 # barrier and small bound pushes, so that IPOPT stays near the point it starts from.
@@ -104,8 +106,9 @@ class SolverSettings:
         Added to the angle modes' first margin run and to the projection (a small initial barrier).
     floor_crowd_margin_options, floor_crowd_share : mapping, float
         Added to the angle modes' first margin run instead, when at least ``floor_crowd_share`` of
-        the start's triangles lie below the area floor (thin limbs: their bounds bind one after
-        another under a small barrier; docs/tuning.md, "angle_mode_margin_options").
+        the start's triangles lie below the area floor (thin limbs: their corners' floors bind one
+        after another under a small monotone barrier; the adaptive barrier; docs/tuning.md,
+        "angle_mode_margin_options" and "floor_crowd_margin_options").
     multiplier_estimate_max_vertices : int
         From this many vertices IPOPT starts the constraint multipliers at 0 instead of its
         least-squares estimate (``constr_mult_init_max`` 0): the estimate costs one factorisation of
