@@ -61,8 +61,9 @@ ANGLE_MODE_MARGIN_OPTIONS = MappingProxyType({"mu_init": 1e-6})
 # ... unless a large share of the start lies below the area floor (floor_crowd_share): thin limbs,
 # whose corners' floors bind one after another under a small barrier, each step cut short where one
 # more corner reaches its floor. IPOPT's adaptive barrier (Nocedal, Waechter & Waltz 2009) raises mu
-# again while the iterate hugs its bounds, instead of only lowering it.
-FLOOR_CROWD_MARGIN_OPTIONS = MappingProxyType({"mu_init": 1e-4, "mu_strategy": "adaptive"})
+# again while the iterate hugs its bounds, instead of only lowering it; its probing oracle
+# (Mehrotra's predictor) costs one extra backsolve an iteration.
+FLOOR_CROWD_MARGIN_OPTIONS = MappingProxyType({"mu_init": 1e-4, "mu_strategy": "adaptive", "mu_oracle": "probing"})
 
 # A warm-started run (re-centred window, inequality stage from the equality solution): a small
 # barrier and small bound pushes, so that IPOPT stays near the point it starts from.
@@ -107,7 +108,7 @@ class SolverSettings:
     floor_crowd_margin_options, floor_crowd_share : mapping, float
         Added to the angle modes' first margin run instead, when at least ``floor_crowd_share`` of
         the start's triangles lie below the area floor (thin limbs: their corners' floors bind one
-        after another under a small monotone barrier; the adaptive barrier; docs/tuning.md,
+        after another under a small monotone barrier): a small first barrier, adaptive (docs/tuning.md,
         "angle_mode_margin_options" and "floor_crowd_margin_options").
     multiplier_estimate_max_vertices : int
         From this many vertices IPOPT starts the constraint multipliers at 0 instead of its
