@@ -195,9 +195,10 @@ def test_limbed_bodies_of_20k_to_50k_vertices_certify_in_the_default_mode(name):
 # fifth of its start's triangles are below double precision's reach, and the solve's path through
 # them is chaotic (43-122 iterations on copies moved by 1e-10; docs/tuning.md, "The conformal start").
 @pytest.mark.slow
-def test_the_thin_eight_legged_body_certifies_in_the_default_mode():
+@pytest.mark.parametrize("mode", ["original-angles", "equal-angles"])
+def test_the_thin_eight_legged_body_certifies_in_the_angle_modes(mode):
     V, F = limbed_body(**THIN_LIMBED_BODIES["27k"])
-    result = parameterize((V, F), "original-angles")
+    result = parameterize((V, F), mode)
     assert result.success and result.certificate.valid and result.recovery is None
     assert result.max_constraint_violation < 1e-8
     assert result.iterations <= 150
@@ -251,3 +252,30 @@ def test_semidefinite_tip_blocks_change_the_path_not_the_optimum(monkeypatch):
     for result in runs.values():
         assert result.certificate.valid and result.max_constraint_violation < 1e-8
     assert runs[1e-16].objective == pytest.approx(runs[0.0].objective, rel=1e-7)
+
+
+def test_a_floor_crowded_start_gets_the_adaptive_barrier_and_keeps_its_optimum(monkeypatch):
+    # Four limbs of 45-60 radii: over a fifth of the start's triangles lie below the area floor, and
+    # the first margin run gets settings.floor_crowd_margin_options (IPOPT's adaptive barrier); a
+    # round body keeps the small monotone barrier. The barrier changes the path, not the optimum.
+    from sphere_nlp import solve
+
+    first_options = []
+    run_ipopt = solve.run_ipopt
+
+    def spy(nlp, name, x, settings, stages=None, **keywords):
+        if name == "margin":
+            first_options.append(dict(keywords.get("options") or {}))
+        return run_ipopt(nlp, name, x, settings, stages, **keywords)
+
+    monkeypatch.setattr(solve, "run_ipopt", spy)
+    V, F = limbed_body(**COLLAPSING_LIMBS)
+    monotone = DEFAULT_SETTINGS.replace(floor_crowd_margin_options={"mu_init": 1e-4})
+    runs = [parameterize((V, F), settings=settings) for settings in (DEFAULT_SETTINGS, monotone)]
+    assert [options.get("mu_strategy") for options in first_options] == ["adaptive", None]
+    for result in runs:
+        assert result.certificate.valid and result.max_constraint_violation < 1e-8
+    assert runs[0].objective == pytest.approx(runs[1].objective, rel=1e-7)
+    first_options.clear()
+    parameterize(ellipsoid(2))
+    assert first_options[0].get("mu_strategy") is None and first_options[0]["mu_init"] == 1e-6
