@@ -111,12 +111,10 @@ def test_clipped_hessian_is_the_exact_one_less_the_negative_log_term(hessian):
 def test_semidefinite_blocks_are_the_nearest_positive_semidefinite_matrices():
     # Higham (1988): the nearest PSD matrix in the Frobenius norm sets the negative eigenvalues to
     # 0, so its distance is the norm of those eigenvalues; PSD blocks are left as they are.
-    from sphere_nlp.nlp import nearest_semidefinite_blocks
+    from sphere_nlp.nlp import BLOCK_UPPER_ENTRIES, nearest_semidefinite_blocks
 
     rng = np.random.default_rng(4)
-    rows, cols = np.triu_indices(4)
-    order = np.lexsort((rows, cols))                 # column-major upper triangle
-    rows, cols = rows[order], cols[order]
+    rows, cols = np.array(BLOCK_UPPER_ENTRIES).T
     matrices = rng.standard_normal((50, 4, 4))
     matrices = matrices + matrices.transpose(0, 2, 1)
     projected = nearest_semidefinite_blocks(matrices[:, rows, cols].T)
