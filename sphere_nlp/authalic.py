@@ -38,6 +38,7 @@ import scipy.sparse as sp
 from . import interrupts, sparse_lu
 from .certify import certify
 from .conformal import _assemble_edge_weights, _inverse_stereographic
+from .connectivity import vertex_graph
 from .geometry import cross, rotation_between, signed_solid_angles, triangle_areas
 from .untangle import untangle
 
@@ -77,7 +78,7 @@ def stretch_laplacian(positions, faces, target_share):
 
 
 def stretch_energy_map(positions, faces, target_excess, max_steps=50, radius=1.3, patience=3, deadline=None,
-                       progress=None):
+                       progress=None, vertex_order=None):
     """Stretch-energy minimisation from a bijective sphere map; the positions after it, (n, 3).
 
     Each step inverts the stereographic plane (so that the other hemisphere is inside), solves the
@@ -88,7 +89,8 @@ def stretch_energy_map(positions, faces, target_excess, max_steps=50, radius=1.3
     ``deadline`` (a ``time.perf_counter`` value). The SEM step is not orientation-safe (a few
     triangles can flip), so it also returns the least-energy step that is a bijective map (None if
     none is): (least energy, least energy among the bijective). ``progress(stage, step, energy,
-    0.0, seconds)`` is called after each step.
+    0.0, seconds)`` is called after each step. ``vertex_order``: the mesh's nested-dissection order,
+    restricted to each step's unknowns (:func:`sphere_nlp.sparse_lu.restricted_order`).
     """
     faces = np.asarray(faces, dtype=np.int64)
     target_share = target_excess / target_excess.sum()
@@ -118,7 +120,8 @@ def stretch_energy_map(positions, faces, target_excess, max_steps=50, radius=1.3
             break
         rhs = -(L[inner][:, ~inner] @ plane[~inner])
         try:
-            plane[inner] = sparse_lu.solve(L[inner][:, inner], np.asarray(rhs))
+            plane[inner] = sparse_lu.solve(L[inner][:, inner], np.asarray(rhs),
+                                           ordering=sparse_lu.restricted_order(vertex_order, inner))
         except RuntimeError:                 # singular or not finite: the weights degenerated
             break
         plane /= np.median(np.linalg.norm(plane, axis=1))
@@ -221,7 +224,7 @@ class _Preconditioner:
     slower per unit of energy).
     """
 
-    def __init__(self, X, ratio, energy):
+    def __init__(self, X, ratio, energy, vertex_order=None):
         faces, n = energy.faces, energy.n
         corners = X[faces]
         to_next = np.roll(corners, -1, axis=1) - corners
@@ -232,7 +235,8 @@ class _Preconditioner:
             cot = np.einsum("tjk,tjk->tj", to_next, to_prev) / np.linalg.norm(cross(to_next, to_prev), axis=2)
             weight = 0.5 * np.maximum(cot, 0.05) * (2 / np.exp(ratio + energy.log_target))[:, None]
         L = _assemble_edge_weights(faces, weight, n)
-        self.factor = sparse_lu.factorize(L + 1e-3 * sp.diags(L.diagonal()))
+        self.factor = sparse_lu.factorize(L + 1e-3 * sp.diags(L.diagonal()),
+                                          ordering=sparse_lu.restricted_order(vertex_order, np.ones(n, bool)))
 
     def __call__(self, v):
         n = self.factor.shape[0]
@@ -249,7 +253,8 @@ class DescentTrace:
 
 
 def authalic_descent(positions, faces, target_excess, deadline=None, stall=1e-3, tolerance=1e-4,
-                     max_steps=None, memory=10, refactor_every=10, progress=None, aim=None, extra_steps=0):
+                     max_steps=None, memory=10, refactor_every=10, progress=None, aim=None, extra_steps=0,
+                     vertex_order=None):
     """Riemannian L-BFGS of :class:`AuthalicEnergy` from a certified map; (positions, trace).
 
     Directions come from the two-loop recursion over the last ``memory`` steps (vectors in R^3n,
@@ -266,7 +271,8 @@ def authalic_descent(positions, faces, target_excess, deadline=None, stall=1e-3,
     ``aim``, a descent whose ``max_steps`` end above that mean |log area ratio| goes on while it is
     above it, for at most ``extra_steps`` more steps (``trace.stopped`` "aim" when it got there):
     a budget in steps, not seconds, that still gives a body with thin limbs what it needs.
-    ``progress(stage, step, energy, 0.0, seconds)`` is called after each step.
+    ``progress(stage, step, energy, 0.0, seconds)`` is called after each step. ``vertex_order``:
+    the mesh's nested-dissection order, for the preconditioner's factorisations.
     """
     faces = np.asarray(faces, dtype=np.int64)
     n = len(positions)
@@ -299,7 +305,7 @@ def authalic_descent(positions, faces, target_excess, deadline=None, stall=1e-3,
         interrupts.raise_if_interrupted()
         try:
             if (step_count - 1) % refactor_every == 0:
-                precondition = _Preconditioner(X, ratio, energy)
+                precondition = _Preconditioner(X, ratio, energy, vertex_order)
             found = _line_search(energy, X, E, G, _lbfgs_direction(G.ravel(), s_list, y_list, precondition))
             if found is None and s_list:
                 # The memory's direction led nowhere the barrier allows: start again from the gradient.
@@ -394,7 +400,7 @@ class AuthalicMap:
 
 
 def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps=None, tolerance=1e-4,
-                 stall=1e-3, progress=None, aim=None, extra_steps=0):
+                 stall=1e-3, progress=None, aim=None, extra_steps=0, vertex_order=None):
     """A bijective map of the mesh whose spherical areas approach ``target_excess``.
 
     ``start`` is a certified map of the mesh (the conformal start); ``vertices`` the 3D positions
@@ -402,9 +408,13 @@ def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps
     untangling) is bijective and nearer the targets, then at most ``max_steps`` steps of
     :func:`authalic_descent` from the better map (until its mean |log area ratio| is below
     ``tolerance``; up to ``extra_steps`` more while above ``aim``), within ``max_time`` seconds. The
-    result is the start itself at worst.
+    result is the start itself at worst. Their sparse solves are ordered by ``vertex_order``
+    (``Connectivity.vertex_order``; computed from the faces if not given, on meshes of
+    :data:`sphere_nlp.sparse_lu.NESTED_DISSECTION_UNKNOWNS` vertices or more).
     """
     faces = np.asarray(faces, dtype=np.int64)
+    if vertex_order is None and len(start) >= sparse_lu.NESTED_DISSECTION_UNKNOWNS:
+        vertex_order = sparse_lu.nested_dissection(vertex_graph(faces, len(start)))
     target_excess = np.asarray(target_excess, dtype=float)
     began = time.perf_counter()
     deadline = None if max_time is None else began + max_time
@@ -418,7 +428,8 @@ def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps
 
     def sem_maps(target):
         """SEM's least-energy map (untangled where it flipped triangles) and its best bijective step."""
-        sem, bijective = stretch_energy_map(best, faces, target, deadline=deadline, progress=progress)
+        sem, bijective = stretch_energy_map(best, faces, target, deadline=deadline, progress=progress,
+                                            vertex_order=vertex_order)
         if not certify(sem, faces).valid and not out_of_time():
             # SEM's solves are not orientation-safe: re-embed small disks around the flipped triangles.
             sem, _ = untangle(sem, faces, mesh_vertices=vertices, progress=progress)
@@ -439,7 +450,7 @@ def authalic_map(vertices, faces, start, target_excess, max_time=None, max_steps
     sem_seconds = time.perf_counter() - began
     X, trace = authalic_descent(best, faces, target_excess, deadline=deadline, max_steps=max_steps,
                                 tolerance=tolerance, stall=stall, progress=progress, aim=aim,
-                                extra_steps=extra_steps)
+                                extra_steps=extra_steps, vertex_order=vertex_order)
     return AuthalicMap(positions=X, mean_abs_log_area=mean_abs_log_area(X, faces, target_excess),
                        start_mean_abs_log_area=start_error, sem_mean_abs_log_area=sem_error,
                        seconds=time.perf_counter() - began, sem_seconds=sem_seconds, trace=trace)

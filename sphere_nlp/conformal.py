@@ -8,6 +8,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import sparse_lu
+from .connectivity import vertex_graph
 
 from .geometry import cross, scatter_to_vertices, triangle_areas, triangles_with_angles
 
@@ -58,28 +59,18 @@ def lumped_mass(vertices, faces):
     return sp.diags(scatter_to_vertices(faces, triangle_areas(vertices, faces) / 3, len(vertices)))
 
 
-# From this many free vertices the Dirichlet solves are ordered by METIS nested dissection, which
-# fills less than SuperLU's own ordering on large meshes and gains nothing below (docs/tuning.md,
-# "Large meshes").
-NESTED_DISSECTION_UNKNOWNS = 300_000
-
-
 def _dirichlet_solve(K, values, fixed, vertex_order=None):
     """Solve K x = 0 on the free vertices with x = values on ``fixed``; values is (n, k), returns (n, k).
 
     ``vertex_order``: a nested-dissection order of all vertices (new -> old), restricted to the free
-    ones for a large solve instead of ordering afresh."""
+    ones (:func:`sphere_nlp.sparse_lu.restricted_order`)."""
     n = K.shape[0]
     free = np.ones(n, bool)
     free[fixed] = False
     x = np.array(values, dtype=float)
     K = K.tocsr()
     rhs = -(K[free][:, ~free] @ x[~free])
-    ordering = None
-    if np.count_nonzero(free) >= NESTED_DISSECTION_UNKNOWNS:
-        # new -> old among the free vertices: the order's free vertices, renumbered
-        ordering = ("metis" if vertex_order is None
-                    else (np.cumsum(free) - 1)[np.asarray(vertex_order)[free[vertex_order]]])
+    ordering = sparse_lu.restricted_order(vertex_order, free)
     x[free] = sparse_lu.solve(K[free][:, free], np.asarray(rhs, dtype=float), ordering=ordering)
     return x
 
@@ -219,7 +210,9 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None, vertex_order
         Corner angles of the metric to map conformally (default: the surface's).
     vertex_order : (n,) int array, optional
         A nested-dissection order of the vertices (``Connectivity.vertex_order``), which the two
-        solves restrict to their unknowns on large meshes instead of ordering afresh.
+        solves restrict to their unknowns; computed here from the faces if not given (from
+        :data:`sphere_nlp.sparse_lu.NESTED_DISSECTION_UNKNOWNS` vertices; below that SuperLU
+        orders each solve itself).
 
     Returns
     -------
@@ -237,6 +230,8 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None, vertex_order
     vertices = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
     n = len(vertices)
+    if vertex_order is None and n >= sparse_lu.NESTED_DISSECTION_UNKNOWNS:
+        vertex_order = sparse_lu.nested_dissection(vertex_graph(faces, n))
     corners = vertices[faces] if angles is None else triangles_with_angles(angles)
     # Step 1: harmonic map into the big triangle.
     big = _most_regular_face(corners)

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import interrupts
+from . import interrupts, sparse_lu
 from .authalic import authalic_map, mean_abs_log_area
 from .certify import certify
 from .settings import DEFAULT_SETTINGS
@@ -131,7 +131,9 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
                          tolerance=1e-4 if budget is None else settings.authalic_tolerance,
                          stall=settings.authalic_stall, progress=progress,
                          aim=None if budget is None else AREA_AIM,
-                         extra_steps=0 if budget is None else budget["extra_descent_steps"])
+                         extra_steps=0 if budget is None else budget["extra_descent_steps"],
+                         vertex_order=(connectivity.vertex_order()
+                                       if connectivity.n_vertices >= sparse_lu.NESTED_DISSECTION_UNKNOWNS else None))
     authalic_angles, authalic_excess = angles_and_excess(stage.positions, faces)
     authalic_objective = objective_value(targets, authalic_angles, authalic_excess)
     record = {"start": start_kind, "start_seconds": round(start_s, 3),

@@ -66,6 +66,29 @@ class CheckedLU:
     __call__ = solve
 
 
+# From this many unknowns a Laplacian-like solve is ordered by the mesh's nested dissection
+# (``Connectivity.vertex_order``, computed once a mesh) restricted to its unknowns: the cotangent
+# Laplacian of the Loop armadillo (173k vertices) factorises in 0.45 s against 1.27 s with SuperLU's
+# own order (L+U 10.3M nonzeros against 18.6M, so solves are faster too); 0.13 against 0.29 s at 50k
+# (nefertiti), 0.03 against 0.06 s at 15k; below ~10k either takes a few hundredths of a second.
+NESTED_DISSECTION_UNKNOWNS = 10_000
+
+
+def restricted_order(order, keep, minimum=None):
+    """A nested-dissection ``order`` of all unknowns (new -> old) restricted to those with ``keep``
+    (a boolean mask), in the kept unknowns' own numbering; None when ``order`` is None or fewer than
+    ``minimum`` (default NESTED_DISSECTION_UNKNOWNS) are kept: SuperLU's own ordering is as good there.
+
+    >>> restricted_order(np.array([3, 0, 2, 1]), np.array([True, False, True, True]), minimum=0).tolist()
+    [2, 0, 1]
+    """
+    keep = np.asarray(keep, bool)
+    if order is None or np.count_nonzero(keep) < (NESTED_DISSECTION_UNKNOWNS if minimum is None else minimum):
+        return None
+    order = np.asarray(order, dtype=np.intp)
+    return (np.cumsum(keep) - 1)[order[keep[order]]]
+
+
 def nested_dissection(graph):
     """METIS nested-dissection order (new -> old index) of the vertices of a sparsity pattern.
 

@@ -118,6 +118,29 @@ def test_stretch_energy_step_moves_area_to_a_limbed_meshes_tentacles():
     assert stage.mean_abs_log_area <= min(stage.sem_mean_abs_log_area, before)
 
 
+def test_the_authalic_stage_orders_its_solves_by_the_meshs_nested_dissection(monkeypatch):
+    """SEM's solves (each restricted to its unknowns) and the descent's preconditioner are ordered
+    by the mesh's nested dissection (from sparse_lu.NESTED_DISSECTION_UNKNOWNS vertices, lowered
+    here), and reach the same map as with SuperLU's own order, to rounding."""
+    from sphere_nlp import sparse_lu
+    V, F = ellipsoid(3)
+    C, start, targets = _problem(V, F)
+    orderings = []
+    factorize = sparse_lu.factorize
+    monkeypatch.setattr(sparse_lu, "factorize", lambda A, ordering=None, **kw: (
+        orderings.append(None if ordering is None else len(ordering)), factorize(A, ordering=ordering, **kw))[1])
+    monkeypatch.setattr(sparse_lu, "NESTED_DISSECTION_UNKNOWNS", 0)
+    ordered = authalic.authalic_map(V, F, start, targets.excess, max_steps=20, vertex_order=C.vertex_order())
+    assert orderings and None not in orderings and len(V) in orderings and min(orderings) < len(V)
+    monkeypatch.setattr(sparse_lu, "NESTED_DISSECTION_UNKNOWNS", 10 ** 9)
+    del orderings[:]
+    own = authalic.authalic_map(V, F, start, targets.excess, max_steps=20)
+    assert orderings and set(orderings) == {None}
+    assert certify(ordered.positions, F).valid
+    assert np.abs(ordered.positions - own.positions).max() < 1e-8
+    assert ordered.mean_abs_log_area == pytest.approx(own.mean_abs_log_area, rel=1e-8)
+
+
 def test_no_worse_band_keeps_each_triangle_no_further_from_its_target():
     excess = np.array([0.5, 1.0, 3.0])
     target = np.array([1.0, 1.0, 1.0])
