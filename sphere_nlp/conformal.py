@@ -59,6 +59,14 @@ def lumped_mass(vertices, faces):
     return sp.diags(scatter_to_vertices(faces, triangle_areas(vertices, faces) / 3, len(vertices)))
 
 
+# FLASH's two solves are ordered by the mesh's nested dissection only from this many vertices, not
+# from sparse_lu.NESTED_DISSECTION_UNKNOWNS like the other Laplacian solves: the order changes the
+# start by rounding, which where limbs collapse past double precision changes the angle solve's path
+# (thin:27k equal-angles: 55 iterations to 1616.6 instead of 39 to 1478.9) for 0.3 s at 50k
+# vertices and 1.6 s at 173k (docs/tuning.md, "Large meshes").
+NESTED_DISSECTION_UNKNOWNS = 300_000
+
+
 def _dirichlet_solve(K, values, fixed, vertex_order=None):
     """Solve K x = 0 on the free vertices with x = values on ``fixed``; values is (n, k), returns (n, k).
 
@@ -70,7 +78,7 @@ def _dirichlet_solve(K, values, fixed, vertex_order=None):
     x = np.array(values, dtype=float)
     K = K.tocsr()
     rhs = -(K[free][:, ~free] @ x[~free])
-    ordering = sparse_lu.restricted_order(vertex_order, free)
+    ordering = sparse_lu.restricted_order(vertex_order, free, minimum=NESTED_DISSECTION_UNKNOWNS)
     x[free] = sparse_lu.solve(K[free][:, free], np.asarray(rhs, dtype=float), ordering=ordering)
     return x
 
@@ -211,8 +219,7 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None, vertex_order
     vertex_order : (n,) int array, optional
         A nested-dissection order of the vertices (``Connectivity.vertex_order``), which the two
         solves restrict to their unknowns; computed here from the faces if not given (from
-        :data:`sphere_nlp.sparse_lu.NESTED_DISSECTION_UNKNOWNS` vertices; below that SuperLU
-        orders each solve itself).
+        :data:`NESTED_DISSECTION_UNKNOWNS` vertices; below that SuperLU orders each solve itself).
 
     Returns
     -------
@@ -230,7 +237,7 @@ def conformal_map(vertices, faces, fixed_fraction=0.1, angles=None, vertex_order
     vertices = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
     n = len(vertices)
-    if vertex_order is None and n >= sparse_lu.NESTED_DISSECTION_UNKNOWNS:
+    if vertex_order is None and n >= NESTED_DISSECTION_UNKNOWNS:
         vertex_order = sparse_lu.nested_dissection(vertex_graph(faces, n))
     corners = vertices[faces] if angles is None else triangles_with_angles(angles)
     # Step 1: harmonic map into the big triangle.

@@ -28,7 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from . import interrupts, sparse_lu
+from . import interrupts
 from .certify import certify
 from .geometry import (corner_angles, scatter_to_vertices, signed_solid_angles, spherical_angles,
                        triangle_areas)
@@ -81,12 +81,12 @@ def conformal_start(connectivity, vertices, weights=None, angles=None, progress=
     -------
     (positions, kind) with kind "conformal" or "conformal-untangled", or None.
     """
-    from .conformal import conformal_map
+    from .conformal import NESTED_DISSECTION_UNKNOWNS, conformal_map
     from .embedding import mobius_centre
 
     faces = connectivity.faces
     # The mesh's nested-dissection order, shared with the unfold's solves (computed once).
-    order = connectivity.vertex_order() if connectivity.n_vertices >= sparse_lu.NESTED_DISSECTION_UNKNOWNS else None
+    order = connectivity.vertex_order() if connectivity.n_vertices >= NESTED_DISSECTION_UNKNOWNS else None
     with np.errstate(all="ignore"):
         positions = mobius_centre(conformal_map(vertices, faces, angles=angles, vertex_order=order), weights)
     if not np.isfinite(positions).all():

@@ -157,7 +157,7 @@ def test_the_start_names_each_of_its_parts_to_the_progress_function():
 
 def test_the_meshs_vertex_order_is_computed_once_and_orders_flashs_solves(monkeypatch):
     # Connectivity.vertex_order: METIS on the edge graph, kept; FLASH's two Dirichlet solves restrict
-    # it to their free vertices (from sparse_lu.NESTED_DISSECTION_UNKNOWNS, lowered here) and solve
+    # it to their free vertices (from conformal.NESTED_DISSECTION_UNKNOWNS, lowered here) and solve
     # the same systems as with SuperLU's own order.
     from sphere_nlp import conformal, sparse_lu
     from sphere_nlp.connectivity import vertex_graph
@@ -173,12 +173,12 @@ def test_the_meshs_vertex_order_is_computed_once_and_orders_flashs_solves(monkey
     factorize = sparse_lu.factorize
     monkeypatch.setattr(sparse_lu, "factorize", lambda A, ordering=None, **kw: (
         orderings.append(ordering), factorize(A, ordering=ordering, **kw))[1])
-    monkeypatch.setattr(sparse_lu, "NESTED_DISSECTION_UNKNOWNS", 0)
+    monkeypatch.setattr(conformal, "NESTED_DISSECTION_UNKNOWNS", 0)
     shared = conformal.conformal_map(V, F, vertex_order=order)
     assert len(orderings) == 2 and all(o is not None and len(o) < len(V) for o in orderings)
     # Without an order given, the map orders its solves from the faces, the same way.
     assert np.array_equal(conformal.conformal_map(V, F), shared)
-    monkeypatch.setattr(sparse_lu, "NESTED_DISSECTION_UNKNOWNS", 10 ** 9)
+    monkeypatch.setattr(conformal, "NESTED_DISSECTION_UNKNOWNS", 10 ** 9)
     own = conformal.conformal_map(V, F)
     assert orderings[-1] is None
     assert np.abs(shared - own).max() < 1e-9 and certify(shared, F).valid
