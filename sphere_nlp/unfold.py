@@ -491,10 +491,11 @@ def unknown_ordering(faces, n, vertex_order=None):
     return (2 * np.asarray(order)[:, None] + np.arange(2)).ravel(), permc_spec
 
 
-def _restricted_order(vertex_order, used):
+def _used_order(vertex_order, used):
     """``vertex_order`` (all vertices) restricted to the sorted vertex subset ``used``, in local indices."""
-    kept = vertex_order[np.isin(vertex_order, used, assume_unique=True)]
-    return np.searchsorted(used, kept)
+    keep = np.zeros(len(vertex_order), bool)
+    keep[used] = True
+    return sparse_lu.restricted_order(vertex_order, keep, minimum=0)
 
 
 def _vertex_pairs(faces, n):
@@ -727,7 +728,7 @@ def correct(faces, angles, positions, max_iterations=100, tolerance=1e-13, slow_
             J, unknowns = _angle_jacobian(X, F, bases)
             if ordering is None:
                 ordering = unknown_ordering(F, n, None if vertex_order is None else
-                                            _restricted_order(np.asarray(vertex_order), used))
+                                            _used_order(vertex_order, used))
             try:
                 lu = _NormalMatrixFactor(J, F, n, damping, ordering)
             except RuntimeError:      # numerically singular: damp harder

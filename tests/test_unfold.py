@@ -356,7 +356,7 @@ def test_corrections_share_one_nested_dissection_order_restricted_to_their_part(
     assert sorted(order.tolist()) == list(range(len(V)))
     part = F[: 2 * len(F) // 3]
     used = np.unique(part)
-    local = U._restricted_order(order, used)
+    local = U._used_order(order, used)
     assert sorted(local.tolist()) == list(range(len(used)))
     assert np.array_equal(used[local], order[np.isin(order, used)])      # the whole order, kept
     rng = np.random.default_rng(1)
