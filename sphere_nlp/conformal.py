@@ -62,9 +62,9 @@ def lumped_mass(vertices, faces):
 # FLASH's two solves are ordered by the mesh's nested dissection only from this many vertices, not
 # from sparse_lu.NESTED_DISSECTION_UNKNOWNS like the other Laplacian solves: the order changes the
 # start by rounding, which where limbs collapse past double precision changes the angle solve's path
-# (thin:27k equal-angles: 55 iterations to 1616.6 instead of 39 to 1478.9) for 0.3 s at 50k
-# vertices and 1.6 s at 173k (docs/tuning.md, "Large meshes").
-NESTED_DISSECTION_UNKNOWNS = 300_000
+# (thin:27k equal-angles: 55 iterations to 1616.6 instead of 39 to 1478.9), for 0.3 s at 50k
+# vertices; at 173k it saves 1.6 s (docs/tuning.md, "Large meshes").
+NESTED_DISSECTION_UNKNOWNS = 100_000
 
 
 def _dirichlet_solve(K, values, fixed, vertex_order=None):
