@@ -24,11 +24,15 @@ from .mesh_io import (GLTF_FORMATS, check_mesh_path, read_mesh, write_image, wri
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, failure_advice, status_kind
 from .settings import DEFAULT_SETTINGS, SolverSettings
 from .polish import authalic_route, default_budget
-from .solve import check_floors, NO_VALID_START, ON_LIMIT, solve_angles
+from .solve import check_floors, NO_VALID_START, ON_LIMIT, solve_angles, UNPLACEABLE_START
 from .starts import checked_positions
 from .targets import MODES, make_targets
 from .texture import checker_image, spherical_uv, split_at_seams
 from .unfold import sphere_positions
+
+
+# The area mode an angle mode's run maps with when its start cannot be placed (solve.unplaceable_start).
+AREA_MODE_OF = {"original-angles": "original-areas", "equal-angles": "equal-areas"}
 
 
 def solve_failure_message(status, iterations):
@@ -36,6 +40,9 @@ def solve_failure_message(status, iterations):
     if status == NO_VALID_START:
         return ("no valid starting map: no conformal map of the mesh could be untangled and its convex "
                 "embedding folds in double precision (parts too thin to place)")
+    if status == UNPLACEABLE_START:
+        return ("the start's limbs shrink past what double precision holds (solve.unplaceable_start): "
+                "an area mode maps such a shape")
     if status_kind(status) == "solved":
         # IPOPT converged, but to angles that break a constraint: a zero or negative angle or excess
         # ((3)-(5)), or an equality (6)-(8) off by more than 1e-8.
@@ -774,6 +781,21 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
                                 max_iter=max_iter, max_time=max_time, progress=progress,
                                 vertices=prepared.normalised_vertices, start=start, on_limit=on_limit,
                                 settings=settings, corner_floor=corner_floor, area_floor=area_floor)
+        if solution.status == UNPLACEABLE_START and targets.mode in AREA_MODE_OF:
+            # The start's limbs shrink past what double precision holds, and the angle optimum
+            # under the floors is out of reach (solve.unplaceable_start): the area mode of the same
+            # family maps the surface instead, by its own route from the same start, and says so.
+            asked, found = targets.mode, solution
+            targets = make_targets(AREA_MODE_OF[asked], prepared.normalised_vertices, faces,
+                                   connectivity.vertex_degree)
+            budget = default_budget(connectivity.n_vertices, used) if max_time is None and not unlimited else None
+            route = authalic_route(connectivity, prepared.normalised_vertices, targets, budget=budget,
+                                   settings=settings, progress=progress, ipopt_options=ipopt_options,
+                                   max_iter=max_iter, corner_floor=corner_floor, area_floor=area_floor,
+                                   start=(found.start_positions, found.start))
+            solution, area_route = route.solution, route.record
+            area_route.update(instead_of=asked, mode=targets.mode, start_seconds=round(area_route["start_seconds"] + found.start_s, 3))
+            positions, unfold_info = route.positions, route.unfold_info
         lap("solve", "unfold")
     # Symbolic derivatives and IPOPT set-up happen inside the solve; book them as build time.
     build_s = sum(s["build_s"] for s in solution.stages)

@@ -104,7 +104,7 @@ class AreaRoute:
 
 
 def authalic_route(connectivity, vertices, targets, budget=None, settings=None, progress=None, on_stage=None,
-                   **solve_keywords):
+                   start=None, **solve_keywords):
     """Authalic stage, polish and never-worse rule (module docstring) within ``budget``.
 
     ``budget`` is a work budget (:func:`default_budget`: the descent's steps and the polish's IPOPT
@@ -113,13 +113,15 @@ def authalic_route(connectivity, vertices, targets, budget=None, settings=None, 
     ``max_time``) bounds both stages as well, the authalic one to ``settings.authalic_share`` of
     the time left. ``solve_keywords`` go to :func:`~sphere_nlp.solve.solve_angles` (ipopt_options,
     max_iter, corner_floor, area_floor). ``on_stage(name)`` is called with "authalic" and "polish".
+    ``start`` (positions, kind): the starting map already found (:func:`starting_positions`).
     """
     settings = DEFAULT_SETTINGS if settings is None else settings
     faces = connectivity.faces
     began = time.perf_counter()
     if on_stage is not None:
         on_stage("authalic")
-    start, start_kind = starting_positions(connectivity, vertices, progress=progress)
+    start, start_kind = (starting_positions(connectivity, vertices, progress=progress) if start is None
+                         else start)
     start_s = time.perf_counter() - began
     start_certificate = certify(start, faces)
     if not start_certificate.valid:
@@ -279,6 +281,9 @@ def describe(record):
         clause += "; above the %.2g aimed for: %s" % (
             AREA_AIM, _DESCENT_ENDS.get(stopped, "the start's smallest triangles are too small for double "
                                         "precision (thin limbs), which the area-keeping stage cannot undo"))
+    if record.get("instead_of"):
+        clause = ("%s instead of %s, whose map would shrink this shape's thin limbs or tail past what "
+                  "double precision holds: %s" % (record["mode"], record["instead_of"], clause))
     if authalic.get("share_s") is not None:
         # Under a time limit: what each stage took, the area-keeping one against its share of it.
         clause += "; time: start %.1f s, area-keeping %.1f s of its %.1f s" % (

@@ -110,6 +110,13 @@ class SolverSettings:
         the start's triangles lie below the area floor (thin limbs: their corners' floors bind one
         after another under a small monotone barrier): a small first barrier, adaptive (docs/tuning.md,
         "angle_mode_margin_options" and "floor_crowd_margin_options").
+    unplaceable_corner_share : float
+        Angle modes, named log-chord start: where the start is floor-crowded (above) and at least
+        this share of its corners lie below their floors, its limbs or tail shrink past what double
+        precision holds and the angle optimum under the floors is out of IPOPT's reach (thousands
+        of bounds binding one at a time; docs/tuning.md, "unplaceable_corner_share"): the run maps
+        the surface with the authalic route of the matching area mode instead, and says so. 0
+        turns the rule off.
     multiplier_estimate_max_vertices : int
         From this many vertices IPOPT starts the constraint multipliers at 0 instead of its
         least-squares estimate (``constr_mult_init_max`` 0): the estimate costs one factorisation of
@@ -300,6 +307,7 @@ class SolverSettings:
     angle_mode_margin_options: MappingProxyType = _frozen(ANGLE_MODE_MARGIN_OPTIONS)
     floor_crowd_margin_options: MappingProxyType = _frozen(FLOOR_CROWD_MARGIN_OPTIONS)
     floor_crowd_share: float = 0.2
+    unplaceable_corner_share: float = 0.015
     multiplier_estimate_max_vertices: int = 100_000
     warm_start_options: MappingProxyType = _frozen(WARM_START_OPTIONS)
     excess_window: float = 5.0

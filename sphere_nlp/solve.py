@@ -111,6 +111,8 @@ class AngleSolution:
         within 1% of theirs (:func:`floor_bounds`: ``corner_floor`` x beta, more for small targets,
         or the margin; ``area_floor`` x 4 pi / t; a triangle the start had further below keeps
         its own size as bound, ``max_floor_lift``).
+    start_positions : (n, 3) array or None
+        The start's positions, when the solve stopped there (status :data:`UNPLACEABLE_START`).
     """
 
     angles: np.ndarray
@@ -128,6 +130,7 @@ class AngleSolution:
     converged: bool = False
     floor_corners: int = 0
     floor_triangles: int = 0
+    start_positions: np.ndarray = None
 
 
 def constraint_residuals(connectivity, angles, excess):
@@ -367,6 +370,13 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             solution = without_valid_start(connectivity, targets, initial.positions, initial.kind)
             solution.start_s = start_s
             return solution
+        if (formulation == "log-chord" and targets.mode in ("original-angles", "equal-angles")
+                and targets.area_weight == 0 and isinstance(start, str)
+                and excess_band is None and unplaceable_start(initial, targets, settings)):
+            solution = without_valid_start(connectivity, targets, initial.positions, initial.kind,
+                                           UNPLACEABLE_START)
+            solution.start_positions, solution.start_s = initial.positions, time.perf_counter() - began
+            return solution
         context = _Context.make(connectivity, targets, formulation, settings, ipopt_options, max_iter, max_time,
                                 progress, initial)
         context.log_e_band = excess_band
@@ -377,17 +387,44 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
 
 
 NO_VALID_START = "No_Valid_Start"
+# The angle modes' start shows limbs shrunk past what double precision holds (unplaceable_start).
+UNPLACEABLE_START = "Unplaceable_Start"
 
 
-def without_valid_start(connectivity, targets, positions, start):
-    """The failed solution (status :data:`NO_VALID_START`, no iterations) of a start that is not a
-    valid map: no conformal map could be untangled and the convex embedding rounds to folded
-    triangles (parts too thin for double precision). Its angles are the folded map's."""
+def unplaceable_start(initial, targets, settings=DEFAULT_SETTINGS):
+    """Whether an angle mode's start is floor-crowded (at least ``settings.floor_crowd_share`` of
+    its triangles below the area floor) with at least ``settings.unplaceable_corner_share`` of its
+    corners below their floors (:func:`floor_bounds`).
+
+    The conformal map shrinks a thin limb like e^-s along s radii: a tail of 60 radii would need
+    triangles near e^-120 of their share, which double precision cannot place, so the start's tips
+    are degenerate and the angle optimum under the floors is a strongly non-conformal tail with
+    thousands of bounds binding, which IPOPT crawls towards (docs/tuning.md,
+    "unplaceable_corner_share"). Limbs that are placeable leave at most a few tenths of a per cent
+    of corners below their floors; these shapes, 2-3%.
+    """
+    if settings.unplaceable_corner_share <= 0:
+        return False
+    log_u_floor, log_e_floor = floor_bounds(targets, settings)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        crowded = np.mean(np.log(initial.excess) < log_e_floor) >= settings.floor_crowd_share
+        if not crowded:
+            return False
+        below = np.mean(~(_log_u(initial.angles, initial.excess) >= log_u_floor))
+    return bool(below >= settings.unplaceable_corner_share)
+
+
+def without_valid_start(connectivity, targets, positions, start, status=NO_VALID_START):
+    """The failed solution (``status``, by default :data:`NO_VALID_START`; no iterations) of a start
+    that is not a valid map: no conformal map could be untangled and the convex embedding rounds to
+    folded triangles (parts too thin for double precision). Its angles are the folded map's. With
+    :data:`UNPLACEABLE_START`: of a valid start the angle modes do not solve from
+    (:func:`unplaceable_start`)."""
     with np.errstate(all="ignore"):
         angles, excess = angles_and_excess(positions, connectivity.faces)
         objective = objective_value(targets, angles, excess)
         violation = max_constraint_violation(connectivity, angles, excess)
-    return AngleSolution(angles=angles, excess=excess, success=False, status=NO_VALID_START, iterations=0,
+    return AngleSolution(angles=angles, excess=excess, success=False, status=status, iterations=0,
                          objective=objective, max_constraint_violation=violation, stages=[],
                          initial_angles=angles, initial_excess=excess, start=start, converged=False)
 

@@ -204,6 +204,73 @@ def test_the_thin_eight_legged_body_certifies_in_the_angle_modes(mode):
     assert result.iterations <= 150
 
 
+def _start_below_floors(V, F, mode):
+    """The shares of the default start's triangles below the area floor and of its corners below
+    their floors, as the angle modes' solve sees them (the repaired mesh, the angle modes' gauge)."""
+    from sphere_nlp import solve
+    from sphere_nlp.repair import prepare_mesh
+    from sphere_nlp.starts import initial_point
+    from sphere_nlp.targets import make_targets
+    prepared = prepare_mesh(np.asarray(V, float), np.asarray(F))
+    c = prepared.connectivity
+    targets = make_targets(mode, prepared.normalised_vertices, prepared.faces, c.vertex_degree)
+    initial = initial_point(c, targets, "auto", prepared.normalised_vertices, DEFAULT_SETTINGS.start_gauge)
+    log_u_floor, log_e_floor = solve.floor_bounds(targets, DEFAULT_SETTINGS)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        triangles = np.mean(np.log(initial.excess) < log_e_floor)
+        corners = np.mean(~(solve._log_u(initial.angles, initial.excess) >= log_u_floor))
+    return triangles, corners, solve.unplaceable_start(initial, targets, DEFAULT_SETTINGS)
+
+
+def test_an_unplaceable_start_maps_with_the_area_mode_instead():
+    """Where the start's limbs shrink past double precision (solve.unplaceable_start), the angle
+    mode's run maps with the matching area mode's route from the same start, certified, and says
+    so. On this small body (0.9% of its corners below their floors, under the default 1.5%) the
+    rule is made to fire by a lower share."""
+    from sphere_nlp.cli import summary_line
+    V, F = limbed_body(**COLLAPSING_LIMBS)
+    triangles, corners, fires = _start_below_floors(V, F, "equal-angles")
+    assert triangles >= DEFAULT_SETTINGS.floor_crowd_share and 0.005 <= corners < 0.015 and not fires
+    result = parameterize((V, F), "equal-angles", settings=DEFAULT_SETTINGS.replace(unplaceable_corner_share=0.005))
+    assert result.success and result.certificate.valid and result.usability()["valid"]
+    assert result.target == "equal-areas" and result.area_route["instead_of"] == "equal-angles"
+    assert result.area_route["start"].startswith("conformal")
+    share = signed_solid_angles(result.vertices, result.faces) / (4 * np.pi / len(result.faces))
+    assert share.min() > 1e-3                                  # no limb shrunk past what doubles hold
+    assert "equal-areas instead of equal-angles" in summary_line("out.off", result)
+    assert result.report()["area_route"]["instead_of"] == "equal-angles"
+
+
+def test_placeable_limbs_keep_the_angle_modes():
+    # human_woman's fingers and the six-legged body: floor-crowded starts, no corner below its floor.
+    path = ROOT.parent / "shared" / "meshes" / "human_woman.obj"
+    bodies = [limbed_body(**LIMBED_BODIES["27k"])]
+    if path.exists():
+        import trimesh
+        mesh = trimesh.load(path, process=False, force="mesh")
+        bodies.append((mesh.vertices, mesh.faces))
+    for V, F in bodies:
+        for mode in ("original-angles", "equal-angles"):
+            _, corners, fires = _start_below_floors(V, F, mode)
+            assert corners < 0.005 and not fires
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("body", ["27k", "31k"])
+def test_the_thin_bodies_rule_tells_the_tailed_one_from_the_placeable_one(body):
+    # thin:27k (legs of 20-45 radii) is solved in the angle modes; thin:31k adds a tail of 60 radii
+    # that no double can hold conformally, and the default mode maps it with original-areas.
+    V, F = limbed_body(**THIN_LIMBED_BODIES[body])
+    _, corners, fires = _start_below_floors(V, F, "original-angles")
+    assert fires == (body == "31k")
+    assert (corners >= 0.015) if body == "31k" else (corners < 0.005)
+    if body == "31k":
+        result = parameterize((V, F))
+        assert result.success and result.certificate.valid and result.usability()["valid"]
+        assert result.target == "original-areas" and result.area_route["instead_of"] == "original-angles"
+        assert result.distortion()["mean_abs_log_area"] <= 0.03
+
+
 # The area modes on the fingered and the eight-legged bodies (27k; 31k and 50k with a tail of 60
 # radii, whose conformal start is valid only after rounds of untangling, and whose descent needs its
 # extra steps): the authalic route's promise.
