@@ -259,6 +259,10 @@ def status_text(row):
             budget = "%.3g-s budget" % budget if budget else "no budget"
         if route["answer"] == "none":
             return route["reason"]
+        if route.get("instead_of"):
+            # An angle mode whose start cannot be placed (sphere_nlp.solve.unplaceable_start).
+            return "%s route instead (its start's limbs shrink past double precision): %s" % (
+                route["mode"], status_text(dict(row, area_route=dict(route, instead_of=None))))
         if route["answer"] == "polished":
             end = "optimum" if polish.get("converged") else "budget's end, projected"
             return "authalic + polish (%s, polished to IPOPT's %s)" % (budget, end)
