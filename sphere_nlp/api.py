@@ -784,15 +784,18 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         if solution.status == UNPLACEABLE_START and targets.mode in AREA_MODE_OF:
             # The start's limbs shrink past what double precision holds, and the angle optimum
             # under the floors is out of reach (solve.unplaceable_start): the area mode of the same
-            # family maps the surface instead, by its own route from the same start, and says so.
+            # family maps the surface instead, by its own route, and says so. The route starts from
+            # the same map where that is conformal to the surface's own metric, as its own start is
+            # (the equal modes' is conformal to 2 pi / deg, from which thin:31k's areas stalled).
             asked, found = targets.mode, solution
+            same_start = asked == "original-angles" or found.start.startswith("surface-")
             targets = make_targets(AREA_MODE_OF[asked], prepared.normalised_vertices, faces,
                                    connectivity.vertex_degree)
             budget = default_budget(connectivity.n_vertices, used) if max_time is None and not unlimited else None
             route = authalic_route(connectivity, prepared.normalised_vertices, targets, budget=budget,
                                    settings=settings, progress=progress, ipopt_options=ipopt_options,
                                    max_iter=max_iter, corner_floor=corner_floor, area_floor=area_floor,
-                                   start=(found.start_positions, found.start))
+                                   start=(found.start_positions, found.start) if same_start else None)
             solution, area_route = route.solution, route.record
             area_route.update(instead_of=asked, mode=targets.mode, start_seconds=round(area_route["start_seconds"] + found.start_s, 3))
             positions, unfold_info = route.positions, route.unfold_info

@@ -239,6 +239,9 @@ def test_an_unplaceable_start_maps_with_the_area_mode_instead():
     assert share.min() > 1e-3                                  # no limb shrunk past what doubles hold
     assert "equal-areas instead of equal-angles" in summary_line("out.off", result)
     assert result.report()["area_route"]["instead_of"] == "equal-angles"
+    # The equal-areas mode's own map: its route started from the surface's conformal map, as that
+    # mode does (the equal-angles start is conformal to 2 pi / deg instead).
+    np.testing.assert_allclose(result.vertices, parameterize((V, F), "equal-areas").vertices, atol=1e-12)
 
 
 def test_placeable_limbs_keep_the_angle_modes():
