@@ -25,7 +25,7 @@ from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, failure
 from .settings import DEFAULT_SETTINGS, SolverSettings
 from .polish import authalic_route, default_budget
 from .solve import check_floors, NO_VALID_START, ON_LIMIT, solve_angles, UNPLACEABLE_START
-from .starts import checked_positions
+from .starts import area_centred, checked_positions
 from .targets import MODES, make_targets
 from .texture import checker_image, spherical_uv, split_at_seams
 from .unfold import sphere_positions
@@ -570,6 +570,25 @@ def _check_arguments(angle_weight, area_weight, max_iter, max_time, ipopt_option
             raise errors.UsageError(str(exc)) from None
 
 
+def _area_mode_instead(found, targets, connectivity, prepared, budget, settings, progress, **solve_keywords):
+    """The matching area mode's targets and its authalic route, for an angle-mode run whose start
+    ``found`` shows limbs shrunk past what double precision holds (solve.unplaceable_start), whose
+    angle optimum under the floors is out of reach. The route starts from that map, centred by area
+    as its own start is, where it is conformal to the surface's own metric (the equal modes' is
+    conformal to 2 pi / deg, from which thin:31k's areas stalled); its record says what was asked."""
+    asked = targets.mode
+    area_targets = make_targets(AREA_MODE_OF[asked], prepared.normalised_vertices, prepared.faces,
+                                connectivity.vertex_degree)
+    start = None
+    if asked == "original-angles" or found.start.startswith("surface-"):
+        start = area_centred(connectivity, prepared.normalised_vertices, found.start_positions), found.start
+    route = authalic_route(connectivity, prepared.normalised_vertices, area_targets, budget=budget,
+                           settings=settings, progress=progress, start=start, **solve_keywords)
+    route.record.update(instead_of=asked, mode=area_targets.mode,
+                        start_seconds=round(route.record["start_seconds"] + found.start_s, 3))
+    return area_targets, route
+
+
 def _bounded(function):
     """Run ``function`` with Ctrl-C stopping IPOPT too, ``max_time`` bounding the whole run, and
     numpy's and scipy's BLAS on one thread.
@@ -782,22 +801,11 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
                                 vertices=prepared.normalised_vertices, start=start, on_limit=on_limit,
                                 settings=settings, corner_floor=corner_floor, area_floor=area_floor)
         if solution.status == UNPLACEABLE_START and targets.mode in AREA_MODE_OF:
-            # The start's limbs shrink past what double precision holds, and the angle optimum
-            # under the floors is out of reach (solve.unplaceable_start): the area mode of the same
-            # family maps the surface instead, by its own route, and says so. The route starts from
-            # the same map where that is conformal to the surface's own metric, as its own start is
-            # (the equal modes' is conformal to 2 pi / deg, from which thin:31k's areas stalled).
-            asked, found = targets.mode, solution
-            same_start = asked == "original-angles" or found.start.startswith("surface-")
-            targets = make_targets(AREA_MODE_OF[asked], prepared.normalised_vertices, faces,
-                                   connectivity.vertex_degree)
             budget = default_budget(connectivity.n_vertices, used) if max_time is None and not unlimited else None
-            route = authalic_route(connectivity, prepared.normalised_vertices, targets, budget=budget,
-                                   settings=settings, progress=progress, ipopt_options=ipopt_options,
-                                   max_iter=max_iter, corner_floor=corner_floor, area_floor=area_floor,
-                                   start=(found.start_positions, found.start) if same_start else None)
+            targets, route = _area_mode_instead(solution, targets, connectivity, prepared, budget, settings,
+                                                progress, ipopt_options=ipopt_options, max_iter=max_iter,
+                                                corner_floor=corner_floor, area_floor=area_floor)
             solution, area_route = route.solution, route.record
-            area_route.update(instead_of=asked, mode=targets.mode, start_seconds=round(area_route["start_seconds"] + found.start_s, 3))
             positions, unfold_info = route.positions, route.unfold_info
         lap("solve", "unfold")
     # Symbolic derivatives and IPOPT set-up happen inside the solve; book them as build time.

@@ -225,8 +225,8 @@ def _start_below_floors(V, F, mode):
 def test_an_unplaceable_start_maps_with_the_area_mode_instead():
     """Where the start's limbs shrink past double precision (solve.unplaceable_start), the angle
     mode's run maps with the matching area mode's route from the same start, certified, and says
-    so. On this small body (0.9% of its corners below their floors, under the default 1.5%) the
-    rule is made to fire by a lower share."""
+    so. On this small body (0.9% and 0.08% of its corners below their floors, under the default
+    1.5%) the rule is made to fire by a lower share."""
     from sphere_nlp.cli import summary_line
     V, F = limbed_body(**COLLAPSING_LIMBS)
     triangles, corners, fires = _start_below_floors(V, F, "equal-angles")
@@ -242,6 +242,13 @@ def test_an_unplaceable_start_maps_with_the_area_mode_instead():
     # The equal-areas mode's own map: its route started from the surface's conformal map, as that
     # mode does (the equal-angles start is conformal to 2 pi / deg instead).
     np.testing.assert_allclose(result.vertices, parameterize((V, F), "equal-areas").vertices, atol=1e-12)
+    # original-angles (4 of its 5,280 corners below their floors): the route starts from the same
+    # map, centred by area, and lands where original-areas does.
+    result = parameterize((V, F), settings=DEFAULT_SETTINGS.replace(unplaceable_corner_share=0.0005))
+    assert result.certificate.valid and result.target == "original-areas"
+    assert result.area_route["instead_of"] == "original-angles"
+    own = parameterize((V, F), "original-areas").distortion()["mean_abs_log_area"]
+    assert result.distortion()["mean_abs_log_area"] <= max(0.03, 1.5 * own)
 
 
 def test_placeable_limbs_keep_the_angle_modes():
