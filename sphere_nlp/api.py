@@ -25,7 +25,7 @@ from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, failure
 from .settings import DEFAULT_SETTINGS, SolverSettings
 from .polish import authalic_route, default_budget
 from .solve import check_floors, NO_VALID_START, ON_LIMIT, solve_angles, UNPLACEABLE_START
-from .starts import area_centred, checked_positions
+from .starts import checked_positions
 from .targets import MODES, make_targets
 from .texture import checker_image, spherical_uv, split_at_seams
 from .unfold import sphere_positions
@@ -573,15 +573,15 @@ def _check_arguments(angle_weight, area_weight, max_iter, max_time, ipopt_option
 def _area_mode_instead(found, targets, connectivity, prepared, budget, settings, progress, **solve_keywords):
     """The matching area mode's targets and its authalic route, for an angle-mode run whose start
     ``found`` shows limbs shrunk past what double precision holds (solve.unplaceable_start), whose
-    angle optimum under the floors is out of reach. The route starts from that map, centred by area
-    as its own start is, where it is conformal to the surface's own metric (the equal modes' is
-    conformal to 2 pi / deg, from which thin:31k's areas stalled); its record says what was asked."""
+    angle optimum under the floors is out of reach. The route starts from that map where it is
+    conformal to the surface's own metric, as its own start is (the equal modes' is conformal to
+    2 pi / deg, from which thin:31k's areas stalled); its record says what was asked."""
     asked = targets.mode
     area_targets = make_targets(AREA_MODE_OF[asked], prepared.normalised_vertices, prepared.faces,
                                 connectivity.vertex_degree)
     start = None
     if asked == "original-angles" or found.start.startswith("surface-"):
-        start = area_centred(connectivity, prepared.normalised_vertices, found.start_positions), found.start
+        start = found.start_positions, found.start
     route = authalic_route(connectivity, prepared.normalised_vertices, area_targets, budget=budget,
                            settings=settings, progress=progress, start=start, **solve_keywords)
     route.record.update(instead_of=asked, mode=area_targets.mode,

@@ -208,22 +208,6 @@ def feasible_start(connectivity, vertices=None, kind="auto", gauge="area", angle
     return (*angles_and_excess(positions, connectivity.faces), positions, kind)
 
 
-def area_centred(connectivity, vertices, positions):
-    """``positions`` moved by the Mobius transformation that centres the vertices' 3D areas, as the
-    area modes' start is (:func:`starting_positions` with ``gauge="area"``), if that certifies;
-    else ``positions`` themselves.
-
-    An angle mode's start carries the excess gauge instead; the area route started from it needs
-    more descent steps (thin:31k: 851 against 699 to the same 0.03).
-    """
-    from .embedding import mobius_centre
-
-    faces = connectivity.faces
-    with np.errstate(all="ignore"):
-        moved = mobius_centre(positions, vertex_areas(vertices, faces, connectivity.n_vertices))
-    return moved if np.isfinite(moved).all() and certify(moved, faces).valid else positions
-
-
 def checked_positions(connectivity, positions):
     """``positions`` as a float array if they are a certified spherical triangulation of the mesh,
     else UsageError naming what is wrong."""

@@ -243,7 +243,7 @@ def test_an_unplaceable_start_maps_with_the_area_mode_instead():
     # mode does (the equal-angles start is conformal to 2 pi / deg instead).
     np.testing.assert_allclose(result.vertices, parameterize((V, F), "equal-areas").vertices, atol=1e-12)
     # original-angles (4 of its 5,280 corners below their floors): the route starts from the same
-    # map, centred by area, and lands where original-areas does.
+    # map and lands where original-areas does.
     result = parameterize((V, F), settings=DEFAULT_SETTINGS.replace(unplaceable_corner_share=0.0005))
     assert result.certificate.valid and result.target == "original-areas"
     assert result.area_route["instead_of"] == "original-angles"
