@@ -400,8 +400,8 @@ def unplaceable_start(initial, targets, settings=DEFAULT_SETTINGS):
     triangles near e^-120 of their share, which double precision cannot place, so the start's tips
     are degenerate and the angle optimum under the floors is a strongly non-conformal tail with
     thousands of bounds binding, which IPOPT crawls towards (docs/tuning.md,
-    "unplaceable_corner_share"). Limbs that are placeable leave at most a few tenths of a per cent
-    of corners below their floors; these shapes, 2-3%.
+    "unplaceable_corner_share"). Of the bodies whose limbs are placeable, none left more than 0.9%
+    of its corners below their floors; the tailed ones, 2-3%.
     """
     if settings.unplaceable_corner_share <= 0:
         return False
