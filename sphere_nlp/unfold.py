@@ -187,11 +187,13 @@ def _sine_law_chords(chord_uv, sin_u, sin_v, sin_w):
     """Chords uw and vw of a triangle (w, u, v) from its side uv and the sines of its angles.
 
     Spherical sine law sin(uw) / sin V = sin(vw) / sin U = sin(uv) / sin W, taking the arcs below
-    pi / 2: used for small triangles only, where it holds the ratios the angles fix well.
+    pi / 2: used for small triangles only, where it holds the ratios the angles fix well. A sine
+    outside [0, 1] (an angle past pi in a stopped solve's iterate) is clipped into that range, so
+    the walk places something and the certificate, not a NaN, says the map failed.
     """
     sin_uv = np.sin(2 * np.arcsin(np.minimum(chord_uv / 2, 1.0)))
-    arc_uw = np.arcsin(np.minimum(sin_uv * sin_v / sin_w, 1.0))
-    arc_vw = np.arcsin(np.minimum(sin_uv * sin_u / sin_w, 1.0))
+    arc_uw = np.arcsin(np.clip(sin_uv * sin_v / sin_w, 0.0, 1.0))
+    arc_vw = np.arcsin(np.clip(sin_uv * sin_u / sin_w, 0.0, 1.0))
     return 2 * np.sin(arc_uw / 2), 2 * np.sin(arc_vw / 2)
 
 
