@@ -21,6 +21,7 @@ from .repair import prepare_mesh
 from .metrics import distortion_fields, distortion_summary, shrinkage_summary, usability_summary
 from .mesh_io import (GLTF_FORMATS, check_mesh_path, read_mesh, write_image, write_json, write_material, write_mesh,
                       write_npz)
+from .names import AREA_MODE_OF
 from .nlp import DEFAULT_FORMULATION, FORMULATIONS, check_ipopt_options, failure_advice, status_kind
 from .settings import DEFAULT_SETTINGS, SolverSettings
 from .polish import authalic_route, default_budget
@@ -29,10 +30,6 @@ from .starts import checked_positions
 from .targets import MODES, make_targets
 from .texture import checker_image, spherical_uv, split_at_seams
 from .unfold import sphere_positions
-
-
-# The area mode an angle mode's run maps with when its start cannot be placed (solve.unplaceable_start).
-AREA_MODE_OF = {"original-angles": "original-areas", "equal-angles": "equal-areas"}
 
 
 def solve_failure_message(status, iterations):
@@ -780,13 +777,13 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
         raise errors.UsageError("settings must be a sphere_nlp.SolverSettings, not %s" % type(used).__name__)
     floors = corner_floor if corner_floor is not None else max(used.area_mode_corner_floor,
                                                                used.area_mode_small_corner_floor)
+    # The run's own max_time bounds everything already (the decorator's deadline); without one,
+    # the area modes' route has its default budget, counted in work; math.inf, none at all.
+    budget = default_budget(connectivity.n_vertices, used) if max_time is None and not unlimited else None
     if (isinstance(start, str) and start == "authalic") or (start is None and targets.area_weight > 0
                                                             and formulation == "log-chord" and not floors):
         if formulation != "log-chord" or targets.area_weight == 0:
             raise errors.UsageError("start='authalic' is the area modes' route and needs the log-chord formulation")
-        # The run's own max_time bounds everything already (the decorator's deadline); without
-        # one, the area modes' default budget, counted in work; math.inf, none at all.
-        budget = default_budget(connectivity.n_vertices, used) if max_time is None and not unlimited else None
         lap("build", "solve")
         route = authalic_route(connectivity, prepared.normalised_vertices, targets, budget=budget,
                                settings=settings, progress=progress, ipopt_options=ipopt_options,
@@ -800,8 +797,7 @@ def parameterize(mesh, target="original-angles", *, angle_weight=None, area_weig
                                 max_iter=max_iter, max_time=max_time, progress=progress,
                                 vertices=prepared.normalised_vertices, start=start, on_limit=on_limit,
                                 settings=settings, corner_floor=corner_floor, area_floor=area_floor)
-        if solution.status == UNPLACEABLE_START and targets.mode in AREA_MODE_OF:
-            budget = default_budget(connectivity.n_vertices, used) if max_time is None and not unlimited else None
+        if solution.status == UNPLACEABLE_START:
             targets, route = _area_mode_instead(solution, targets, connectivity, prepared, budget, settings,
                                                 progress, ipopt_options=ipopt_options, max_iter=max_iter,
                                                 corner_floor=corner_floor, area_floor=area_floor)

@@ -6,6 +6,9 @@ or CasADi (0.6 s of imports to print a line); the modules that use them import t
 
 # What a map aims for (sphere_nlp.targets).
 MODES = ("equal-angles", "equal-areas", "original-angles", "original-areas")
+# The area mode that maps a shape instead of an angle mode whose start cannot be placed
+# (sphere_nlp.solve.unplaceable_start).
+AREA_MODE_OF = {"original-angles": "original-areas", "equal-angles": "equal-areas"}
 # How the angle term weighs the corners (sphere_nlp.targets).
 CORNER_WEIGHTINGS = ("relative", "uniform")
 # The NLP's formulations (sphere_nlp.nlp).

@@ -61,7 +61,7 @@ from .nlp import DEFAULT_FORMULATION, AngleNLP, LogChordNLP, status_kind
 from .errors import UsageError
 from .geometry import cross
 from .heap import arrays_on_heap
-from .names import ON_LIMIT  # noqa: F401  (what a stopped margin stage yields; defined there for a light --help)
+from .names import AREA_MODE_OF, ON_LIMIT  # noqa: F401  (ON_LIMIT: re-exported; defined there for a light --help)
 from .settings import DEFAULT_SETTINGS, SolverSettings
 from .starts import angles_and_excess, initial_point
 from .targets import Targets
@@ -370,7 +370,7 @@ def solve_angles(connectivity, targets, formulation=DEFAULT_FORMULATION, ipopt_o
             solution = without_valid_start(connectivity, targets, initial.positions, initial.kind)
             solution.start_s = start_s
             return solution
-        if (formulation == "log-chord" and targets.mode in ("original-angles", "equal-angles")
+        if (formulation == "log-chord" and targets.mode in AREA_MODE_OF
                 and targets.area_weight == 0 and isinstance(start, str)
                 and excess_band is None and unplaceable_start(initial, targets, settings)):
             solution = without_valid_start(connectivity, targets, initial.positions, initial.kind,
@@ -406,12 +406,17 @@ def unplaceable_start(initial, targets, settings=DEFAULT_SETTINGS):
     if settings.unplaceable_corner_share <= 0:
         return False
     log_u_floor, log_e_floor = floor_bounds(targets, settings)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        crowded = np.mean(np.log(initial.excess) < log_e_floor) >= settings.floor_crowd_share
-        if not crowded:
-            return False
-        below = np.mean(~(_log_u(initial.angles, initial.excess) >= log_u_floor))
+    if not floor_crowded(initial.excess, log_e_floor, settings):
+        return False
+    below = np.mean(~(_log_u(initial.angles, initial.excess) >= log_u_floor))
     return bool(below >= settings.unplaceable_corner_share)
+
+
+def floor_crowded(excess, log_e_floor, settings=DEFAULT_SETTINGS):
+    """Whether at least ``settings.floor_crowd_share`` of the triangles (excesses ``excess``) lie
+    below the area floor (``log_e_floor``, :func:`floor_bounds`): a start with thin limbs."""
+    with np.errstate(divide="ignore"):
+        return bool(np.mean(np.log(excess) < log_e_floor) >= settings.floor_crowd_share)
 
 
 def without_valid_start(connectivity, targets, positions, start, status=NO_VALID_START):
@@ -593,10 +598,9 @@ class _Context:
             # A start near the optimum: a small first barrier keeps the solve near it; but where
             # much of the start lies below the area floor (thin limbs), those triangles' bounds bind
             # one after another under it, and a larger first barrier takes fewer steps.
-            below_floor = np.mean(np.log(initial.excess) < log_e_floor)
             first_options = dict(options, **(settings.near_start_options if area_mode else
                                              settings.floor_crowd_margin_options
-                                             if below_floor >= settings.floor_crowd_share
+                                             if floor_crowded(initial.excess, log_e_floor, settings)
                                              else settings.angle_mode_margin_options))
             first_options.update(ipopt_options or {})
         # The three redundant vertex sums (7) left out, at vertices of the valid start (none for
